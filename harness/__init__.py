@@ -1,0 +1,1 @@
+"""sotif-bench harness: KITTI I/O, boxes, evaluation, inference, reports, CLI."""

@@ -1,0 +1,1 @@
+"""Seven LiDAR 3D object detectors in plain PyTorch, exportable to ONNX."""

@@ -1,0 +1,32 @@
+"""What every detector offers the harness.
+
+A detector is an ``nn.Module`` built from a frozen config dataclass. The harness only uses:
+
+- ``forward(points[, image, lidar2img])`` -> the ONNX contract outputs, as a tuple of tensors:
+  ``(boxes (M, 7), scores (M,))`` for one-stage models and
+  ``(boxes, scores, rois (K, 7), roi_scores (K,), rcnn_boxes (K, 7))`` for two-stage models
+  (``rcnn_boxes``: the refined box of every RoI before score threshold and NMS, for
+  OpenPCDet-style Recall at RCNN). One frame, no batch axis, LiDAR frame, final NMS inside.
+- ``loss(samples)`` -> dict of scalar tensors with the total under ``"loss"``.
+- the class attributes below (written into the ONNX metadata).
+"""
+from __future__ import annotations
+
+from torch import nn
+
+ONE_STAGE_OUTPUTS = ("boxes", "scores")
+TWO_STAGE_OUTPUTS = ("boxes", "scores", "rois", "roi_scores", "rcnn_boxes")
+
+
+class Detector(nn.Module):
+    architecture: str = ""  # the model name used on the command line, e.g. "pointpillars"
+    two_stage: bool = False
+    uses_camera: bool = False
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return TWO_STAGE_OUTPUTS if self.two_stage else ONE_STAGE_OUTPUTS
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return ("points", "image", "lidar2img") if self.uses_camera else ("points",)
