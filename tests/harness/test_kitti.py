@@ -1,0 +1,142 @@
+import numpy as np
+import pandas as pd
+import pytest
+from hypothesis import HealthCheck, given, settings, strategies as st
+
+from harness import kitti
+from harness.boxes import corners_3d
+from harness.kitti import KittiError, Labels
+
+
+def test_points_round_trip_and_errors(tmp_path):
+    pts = np.random.default_rng(0).normal(size=(100, 4)).astype(np.float32)
+    p = kitti.write_points(tmp_path / "a.bin", pts)
+    np.testing.assert_array_equal(kitti.read_points(p), pts)
+    (tmp_path / "t.bin").write_bytes(pts.tobytes()[:-3])
+    with pytest.raises(KittiError, match=r"t\.bin.*multiple of 16"):
+        kitti.read_points(tmp_path / "t.bin")
+    bad = pts.copy()
+    bad[5, 1] = np.nan
+    (tmp_path / "n.bin").write_bytes(bad.tobytes())
+    with pytest.raises(KittiError, match=r"n\.bin.*NaN"):
+        kitti.read_points(tmp_path / "n.bin")
+    with pytest.raises(KittiError, match="not found"):
+        kitti.read_points(tmp_path / "missing.bin")
+    assert kitti.read_points(kitti.write_points(tmp_path / "e.bin", np.zeros((0, 4)))).shape == (0, 4)
+
+
+def test_calib_round_trip_and_projection(tmp_path):
+    calib = kitti.kitti_calib()
+    p = kitti.write_calib(tmp_path / "c.txt", calib)
+    back = kitti.read_calib(p)
+    np.testing.assert_allclose(back.lidar2img(), calib.lidar2img(), rtol=1e-9)
+    pts = np.array([[10.0, 0.0, -0.08], [20.0, 2.0, 1.0]])  # on the optical axis / left and above
+    uv, depth = back.project_lidar(pts)
+    assert depth[0] == pytest.approx(10 - 0.27)
+    assert uv[0] == pytest.approx([1242 / 2 - 0.5, 375 / 2 - 0.5])
+    assert uv[1, 0] < uv[0, 0] and uv[1, 1] < uv[0, 1]
+    np.testing.assert_allclose(back.rect_to_lidar(back.lidar_to_rect(pts)), pts, atol=1e-9)
+    homog = np.c_[pts, np.ones(2)] @ back.lidar2img().T.astype(np.float64)
+    np.testing.assert_allclose(homog[:, :2] / homog[:, 2:3], uv, rtol=1e-5)
+
+
+def test_calib_errors(tmp_path):
+    text = (tmp_path / "ok.txt")
+    kitti.write_calib(text, kitti.kitti_calib())
+    lines = text.read_text().splitlines()
+    (tmp_path / "nokey.txt").write_text("\n".join(l for l in lines if not l.startswith("R0_rect")))
+    with pytest.raises(KittiError, match=r"nokey\.txt: missing calib key\(s\) R0_rect"):
+        kitti.read_calib(tmp_path / "nokey.txt")
+    (tmp_path / "short.txt").write_text(lines[2][:40] + "\n")
+    with pytest.raises(KittiError, match=r"short\.txt:1: P2: expected 12 numbers"):
+        kitti.read_calib(tmp_path / "short.txt")
+
+
+def test_labels_lidar_camera_round_trip(tmp_path):
+    rng = np.random.default_rng(1)
+    boxes = np.c_[rng.uniform(5, 60, (20, 1)), rng.uniform(-10, 10, (20, 1)), rng.uniform(-1.5, -0.5, (20, 1)),
+                  rng.uniform(3, 5, (20, 1)), rng.uniform(1.5, 2, (20, 1)), rng.uniform(1.3, 2, (20, 1)),
+                  rng.uniform(-np.pi, np.pi, (20, 1))].astype(np.float32)
+    calib = kitti.kitti_calib()
+    labels = Labels.from_lidar(boxes, calib, ["Car"] * 20, score=rng.uniform(size=20))
+    back = kitti.read_labels(kitti.write_labels(tmp_path / "l.txt", labels), with_score=True)
+    np.testing.assert_allclose(back.to_lidar(calib)[:, :6], boxes[:, :6], atol=2e-4)
+    dyaw = np.angle(np.exp(1j * (back.to_lidar(calib)[:, 6] - boxes[:, 6])))
+    assert np.abs(dyaw).max() < 2e-4
+    # rotation_y = -yaw - pi/2, bottom-centre location, h w l order
+    np.testing.assert_allclose(np.cos(labels.rotation_y), np.cos(-boxes[:, 6] - np.pi / 2), atol=1e-6)
+    np.testing.assert_allclose(labels.dimensions, boxes[:, [5, 4, 3]], atol=1e-6)
+    np.testing.assert_allclose(labels.location[:, 1], -(boxes[:, 2] - boxes[:, 5] / 2) - 0.08, atol=1e-5)
+    # projected corners lie inside (or on) the clipped 2D box
+    uv, depth = calib.project_lidar(corners_3d(boxes).reshape(-1, 3))
+    uv = uv.reshape(20, 8, 2)
+    inside = (uv[..., 0] >= labels.bbox[:, None, 0] - 1e-6) | (uv[..., 0] < 0)
+    assert inside.all()
+
+
+def test_label_errors(tmp_path):
+    good = "Car 0.00 0 -1.57 100 120 200 180 1.5 1.6 3.9 1.0 1.6 20.0 -1.57"
+    cases = {"fields.txt": (good.rsplit(" ", 1)[0], "expected 15 fields"),
+             "class.txt": (good.replace("Car", "Bus"), "unknown class 'Bus'"),
+             "num.txt": (good.replace("1.5 ", "x "), "must be numbers"),
+             "nan.txt": (good.replace("1.5 ", "nan "), "NaN"),
+             "occ.txt": (good.replace(" 0 -1.57", " 7 -1.57"), "occluded")}
+    for name, (line, msg) in cases.items():
+        (tmp_path / name).write_text(good + "\n" + line + "\n")
+        with pytest.raises(KittiError, match=rf"{name}:2: .*{msg}"):
+            kitti.read_labels(tmp_path / name)
+    (tmp_path / "mixed.txt").write_text(good + "\n" + good + " 0.5\n")
+    with pytest.raises(KittiError, match="some lines have a score"):
+        kitti.read_labels(tmp_path / "mixed.txt")
+    (tmp_path / "empty.txt").write_text("")
+    assert len(kitti.read_labels(tmp_path / "empty.txt")) == 0
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.text(max_size=300))
+def test_parsers_on_garbage_raise_only_kitti_error(tmp_path, text):
+    p = tmp_path / "g.txt"
+    p.write_bytes(text.encode("utf-8", errors="replace"))
+    for reader in (kitti.read_labels, kitti.read_calib, kitti.read_image_set):
+        try:
+            reader(p)
+        except KittiError as e:
+            assert "g.txt" in str(e)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.binary(max_size=200))
+def test_points_on_garbage_bytes(tmp_path, data):
+    p = tmp_path / "g.bin"
+    p.write_bytes(data)
+    try:
+        pts = kitti.read_points(p)
+        assert pts.shape[1] == 4 and np.isfinite(pts).all()
+    except KittiError as e:
+        assert "g.bin" in str(e)
+
+
+def test_image_sets_meta_and_images(tmp_path):
+    kitti.write_image_set(tmp_path / "ImageSets/test.txt", ["000001", "000002"])
+    assert kitti.read_image_set(tmp_path / "ImageSets/test.txt") == ["000001", "000002"]
+    df = pd.DataFrame({"frame_id": ["000001", "000002"], "weather": ["ClearNoon", "HardRainNight"]})
+    kitti.write_frames_meta(tmp_path / "meta/frames.csv", df)
+    back = kitti.read_frames_meta(tmp_path / "meta/frames.csv")
+    assert back["frame_id"].tolist() == ["000001", "000002"]
+    img = np.random.default_rng(0).integers(0, 255, (8, 10, 3), dtype=np.uint8)
+    p = kitti.write_image(tmp_path / "i.png", img)
+    np.testing.assert_array_equal(kitti.read_image(p), img)
+    assert kitti.write_image(tmp_path / "j.png", img).read_bytes() == p.read_bytes()
+    (tmp_path / "bad.png").write_bytes(b"nope")
+    with pytest.raises(KittiError, match=r"bad\.png"):
+        kitti.read_image(tmp_path / "bad.png")
+    assert kitti.frame_path(tmp_path, "velodyne", "000007").name == "000007.bin"
+
+
+def test_atomic_write_keeps_old_file_on_failure(tmp_path, monkeypatch):
+    p = kitti.atomic_write_text(tmp_path / "x.txt", "old")
+    import os
+    monkeypatch.setattr(os, "replace", lambda *a: (_ for _ in ()).throw(OSError("disk full")))
+    with pytest.raises(OSError):
+        kitti.atomic_write_text(p, "new")
+    assert p.read_text() == "old" and len(list(tmp_path.iterdir())) == 1
