@@ -1,0 +1,154 @@
+"""PointNet++ operators against brute-force numpy references, and ONNX export of FPS/ball query."""
+from __future__ import annotations
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from models.pointnet2 import (FeaturePropagation, SetAbstraction, _fps_graph, ball_query,
+                              farthest_point_sample, group_points, three_nn_interpolate)
+
+
+def fps_reference(xyz: np.ndarray, num: int) -> np.ndarray:
+    """Textbook FPS from point 0 in float64 (ties broken by the lowest index)."""
+    n = len(xyz)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    chosen = [0]
+    dist = np.full(n, np.inf)
+    for _ in range(1, min(n, num)):
+        dist = np.minimum(dist, ((xyz - xyz[chosen[-1]]) ** 2).sum(1))
+        chosen.append(int(np.argmax(dist)))
+    return np.array(chosen, dtype=np.int64)
+
+
+def ball_query_reference(xyz, centres, radius, nsample):
+    idx = np.full((len(centres), nsample), len(xyz), dtype=np.int64)
+    valid = np.zeros(len(centres), dtype=bool)
+    for m, c in enumerate(centres):
+        inside = [i for i in range(len(xyz)) if ((xyz[i] - c) ** 2).sum() < radius ** 2]
+        if inside:
+            valid[m] = True
+            chosen = inside[:nsample]
+            idx[m] = chosen + [chosen[0]] * (nsample - len(chosen))
+    return idx, valid
+
+
+@pytest.mark.parametrize("n,num", [(300, 40), (25, 25), (7, 20), (1, 4), (0, 5)])
+def test_fps_matches_reference(n, num):
+    rng = np.random.default_rng(n + num)
+    xyz = rng.uniform(-20, 20, (n, 3)).astype(np.float32)
+    expected = fps_reference(xyz.astype(np.float64), num)
+    got = farthest_point_sample(torch.from_numpy(xyz), num).numpy()
+    np.testing.assert_array_equal(got, expected)
+    assert len(set(got.tolist())) == len(got)  # never the same point twice
+
+
+def test_fps_graph_and_eager_paths_agree():
+    xyz = torch.from_numpy(np.random.default_rng(1).normal(0, 5, (200, 3)).astype(np.float32))
+    np.testing.assert_array_equal(_fps_graph(xyz, 30).numpy(),
+                                  farthest_point_sample(xyz, 30).numpy())
+
+
+def test_fps_rejects_bad_shape():
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        farthest_point_sample(torch.zeros(5, 4), 2)
+
+
+@pytest.mark.parametrize("n,m,radius,nsample", [(400, 30, 1.5, 8), (50, 10, 3.0, 16),
+                                                (0, 6, 1.0, 4), (20, 0, 1.0, 4)])
+def test_ball_query_matches_reference(n, m, radius, nsample):
+    rng = np.random.default_rng(n * 7 + m)
+    xyz = rng.uniform(-4, 4, (n, 3)).astype(np.float32)
+    centres = rng.uniform(-4, 4, (m, 3)).astype(np.float32)
+    idx, valid = ball_query(torch.from_numpy(xyz), torch.from_numpy(centres), radius, nsample)
+    ref_idx, ref_valid = ball_query_reference(xyz, centres, radius, nsample)
+    np.testing.assert_array_equal(idx.numpy(), ref_idx)
+    np.testing.assert_array_equal(valid.numpy(), ref_valid)
+
+
+def test_group_points_reads_zero_row_for_index_n():
+    rng = np.random.default_rng(3)
+    feats = rng.normal(size=(9, 5)).astype(np.float32)
+    idx = rng.integers(0, 10, (4, 6))
+    got = group_points(torch.from_numpy(feats), torch.from_numpy(idx)).numpy()
+    padded = np.concatenate([feats, np.zeros((1, 5), np.float32)])
+    np.testing.assert_array_equal(got, padded[idx])
+
+
+@pytest.mark.parametrize("m", [40, 3, 2, 0])
+def test_three_nn_interpolate_matches_reference(m):
+    rng = np.random.default_rng(m)
+    unknown = rng.uniform(-5, 5, (60, 3))
+    known = rng.uniform(-5, 5, (m, 3))
+    feats = rng.normal(size=(m, 4))
+    got = three_nn_interpolate(*(torch.from_numpy(a).float() for a in (unknown, known, feats)))
+    expected = np.zeros((60, 4))
+    for i, u in enumerate(unknown):
+        d = np.sqrt(((known - u) ** 2).sum(1))
+        nn3 = np.argsort(d)[:3]
+        w = 1.0 / (d[nn3] + 1e-8)
+        # missing neighbours are padding points 1e4 m away with zero features
+        w_pad = np.full(3 - len(nn3), 1.0 / (np.linalg.norm(u - 1e4) + 1e-8))
+        expected[i] = (w[:, None] * feats[nn3]).sum(0) / (w.sum() + w_pad.sum())
+    np.testing.assert_allclose(got.numpy(), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_set_abstraction_matches_reference():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-3, 3, (120, 3)).astype(np.float32)
+    feats = rng.normal(size=(120, 2)).astype(np.float32)
+    centres = np.concatenate([xyz[:10], [[50.0, 50.0, 50.0]]]).astype(np.float32)  # last: empty
+    sa = SetAbstraction(2, radii=[0.8, 1.6], nsamples=[4, 8], mlps=[[8], [6, 5]]).eval()
+    got = sa(torch.from_numpy(xyz), torch.from_numpy(feats), torch.from_numpy(centres)).detach()
+    assert got.shape == (11, 13)
+    outs = []
+    for radius, nsample, mlp in zip(sa.radii, sa.nsamples, sa.mlps):
+        idx, valid = ball_query_reference(xyz, centres, radius, nsample)
+        block = np.zeros((len(centres), mlp[-3].out_features), np.float32)
+        for m in np.flatnonzero(valid):
+            grouped = np.concatenate([xyz[idx[m]] - centres[m], feats[idx[m]]], 1)
+            block[m] = mlp(torch.from_numpy(grouped)).detach().numpy().max(0)
+        outs.append(block)
+    np.testing.assert_allclose(got.numpy(), np.concatenate(outs, 1), rtol=1e-5, atol=1e-6)
+    assert np.all(got.numpy()[-1] == 0)
+
+
+def test_feature_propagation_shapes_and_train_step():
+    torch.manual_seed(0)
+    fp = FeaturePropagation([4 + 2, 8, 8])
+    out = fp(torch.rand(30, 3), torch.rand(6, 3), torch.rand(30, 2), torch.rand(6, 4))
+    assert out.shape == (30, 8)
+    out.sum().backward()
+    assert fp.mlp[0].weight.grad is not None
+
+
+class _FpsBall(torch.nn.Module):
+    def forward(self, points):
+        xyz = points[:, :3]
+        keep = farthest_point_sample(xyz, 32)  # (K,)
+        centres = torch.index_select(xyz, 0, keep)
+        idx, valid = ball_query(xyz, centres, 2.0, 8)
+        return keep, idx, valid
+
+
+def test_fps_and_ball_query_export_to_onnx(tmp_path):
+    model = _FpsBall()
+    n = torch.export.Dim("n", min=0)
+    program = torch.export.export(model, (torch.rand(100, 4),), dynamic_shapes=({0: n},),
+                                  strict=False)
+    onnx_program = torch.onnx.export(program, dynamo=True, verbose=False)
+    path = tmp_path / "fps_ball.onnx"
+    onnx_program.save(str(path))
+    ops = {node.op_type for node in onnx_program.model_proto.graph.node}
+    assert "Loop" in ops and "TopK" in ops
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(0)
+    for n_points in (500, 40, 1, 0):
+        pts = rng.uniform(-10, 10, (n_points, 4)).astype(np.float32)
+        got = session.run(None, {session.get_inputs()[0].name: pts})
+        want = model(torch.from_numpy(pts))
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w.numpy())
