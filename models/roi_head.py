@@ -1,0 +1,190 @@
+"""Shared second-stage pieces of the two-stage detectors (Part-A2, PV-RCNN).
+
+- ``sample_rois``: RoI target assignment by rotated 3D IoU with the ground truth and fg/bg
+  sampling (training only, numpy, outside any exported graph).
+- ``encode_canonical`` / ``decode_canonical``: residuals of a box in its RoI's canonical frame
+  (centre at the origin, heading along +x), normalised like the residual box coder.
+- ``RefineHead``: shared MLP -> IoU-guided confidence logit and box residuals.
+- ``refine_loss``: IoU-guided scoring (binary cross-entropy against a ramp of the RoI IoU),
+  smooth-L1 residuals and the corner loss on foreground RoIs.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from harness.boxes import iou_3d
+
+
+@dataclass(frozen=True)
+class RoITargetConfig:
+    per_frame: int = 64  # RoIs kept per frame for the stage-2 loss
+    fg_fraction: float = 0.5  # at most this share of them foreground
+    fg_iou: float = 0.55  # IoU >= this: foreground, regressed
+    bg_iou: float = 0.25  # IoU < this: background
+    score_lo: float = 0.25  # IoU-guided score target: 0 below, 1 above score_hi, linear between
+    score_hi: float = 0.75
+    gt_jitter: int = 4  # jittered copies of every GT box added to the proposals
+    jitter_xyz: float = 0.3  # metres, std of the centre jitter
+    jitter_size: float = 0.1  # relative std of the size jitter
+    jitter_yaw: float = 0.15  # radians
+
+
+@dataclass
+class RoITargets:
+    rois: Tensor  # (S, 7) sampled RoIs, LiDAR frame
+    iou: Tensor  # (S,) best 3D IoU with a GT box
+    gt: Tensor  # (S, 7) the matched GT box (meaningful where iou >= fg_iou)
+
+
+def jitter_boxes(gt: np.ndarray, copies: int, cfg: RoITargetConfig,
+                 rng: np.random.Generator) -> np.ndarray:
+    """(G, 7) -> (G * copies, 7) randomly perturbed copies (centre, size, heading)."""
+    boxes = np.repeat(gt.astype(np.float64), copies, axis=0)
+    boxes[:, 0:3] += rng.normal(0.0, cfg.jitter_xyz, (len(boxes), 3))
+    boxes[:, 3:6] *= np.exp(rng.normal(0.0, cfg.jitter_size, (len(boxes), 3)))
+    boxes[:, 6] += rng.normal(0.0, cfg.jitter_yaw, len(boxes))
+    return boxes.astype(np.float32)
+
+
+def sample_rois(rois: np.ndarray, gt: np.ndarray, cfg: RoITargetConfig,
+                rng: np.random.Generator) -> RoITargets:
+    """Label proposals by IoU with the GT and draw a fg/bg-balanced subset.
+
+    rois (K, 7), gt (G, 7) LiDAR frame. Returns at most ``cfg.per_frame`` RoIs; RoIs with IoU
+    between bg_iou and fg_iou are kept only to fill up (they still get an IoU score target).
+    """
+    rois = np.concatenate([rois.reshape(-1, 7), jitter_boxes(gt, cfg.gt_jitter, cfg, rng)])
+    if len(gt):
+        overlaps = iou_3d(rois, gt)  # (K', G)
+        best = overlaps.argmax(1)
+        iou = overlaps[np.arange(len(rois)), best]
+        matched = gt[best]
+    else:
+        iou = np.zeros(len(rois))
+        matched = np.zeros((len(rois), 7), np.float32)
+    fg = np.flatnonzero(iou >= cfg.fg_iou)
+    bg = np.flatnonzero(iou < cfg.bg_iou)
+    mid = np.flatnonzero((iou >= cfg.bg_iou) & (iou < cfg.fg_iou))
+    n_fg = min(len(fg), int(cfg.per_frame * cfg.fg_fraction))
+    chosen = [rng.choice(fg, n_fg, replace=False)]
+    for pool in (bg, mid):
+        room = cfg.per_frame - sum(len(c) for c in chosen)
+        chosen.append(rng.choice(pool, min(room, len(pool)), replace=False))
+    keep = np.concatenate(chosen).astype(np.int64)
+    return RoITargets(rois=torch.from_numpy(rois[keep].astype(np.float32)),
+                      iou=torch.from_numpy(iou[keep].astype(np.float32)),
+                      gt=torch.from_numpy(matched[keep].astype(np.float32)))
+
+
+def wrap(angle: Tensor) -> Tensor:
+    """Angles to [-pi, pi)."""
+    return torch.remainder(angle + math.pi, 2 * math.pi) - math.pi
+
+
+def encode_canonical(gt: Tensor, rois: Tensor) -> Tensor:
+    """Residuals of gt (S, 7) in the canonical frame of rois (S, 7) -> (S, 7).
+
+    (dx, dy) / RoI BEV diagonal, dz / RoI height, log size ratios, heading difference. The GT
+    heading is flipped by pi when it points against the RoI, so the heading residual lies in
+    [-pi/2, pi/2] (a box is the same box either way).
+    """
+    d = gt[:, 0:3] - rois[:, 0:3]  # (S, 3) metres
+    c, s = torch.cos(rois[:, 6]), torch.sin(rois[:, 6])
+    lx, ly = d[:, 0] * c + d[:, 1] * s, -d[:, 0] * s + d[:, 1] * c
+    diag = torch.sqrt(rois[:, 3] ** 2 + rois[:, 4] ** 2)
+    dyaw = wrap(gt[:, 6] - rois[:, 6])
+    dyaw = torch.where(dyaw.abs() > math.pi / 2, wrap(dyaw + math.pi), dyaw)
+    size = torch.log(gt[:, 3:6] / rois[:, 3:6])  # (S, 3)
+    return torch.stack([lx / diag, ly / diag, d[:, 2] / rois[:, 5], size[:, 0], size[:, 1],
+                        size[:, 2], dyaw], 1)
+
+
+def decode_canonical(deltas: Tensor, rois: Tensor) -> Tensor:
+    """Inverse of encode_canonical: deltas (S, 7), rois (S, 7) -> boxes (S, 7), LiDAR frame."""
+    diag = torch.sqrt(rois[:, 3] ** 2 + rois[:, 4] ** 2)
+    lx, ly = deltas[:, 0] * diag, deltas[:, 1] * diag
+    c, s = torch.cos(rois[:, 6]), torch.sin(rois[:, 6])
+    x = rois[:, 0] + lx * c - ly * s
+    y = rois[:, 1] + lx * s + ly * c
+    z = rois[:, 2] + deltas[:, 2] * rois[:, 5]
+    size = rois[:, 3:6] * torch.exp(deltas[:, 3:6].clamp(max=4.0))  # (S, 3)
+    yaw = wrap(rois[:, 6] + deltas[:, 6])
+    return torch.cat([torch.stack([x, y, z], 1), size, yaw[:, None]], 1)
+
+
+def box_corners(boxes: Tensor) -> Tensor:
+    """(S, 7) -> (S, 8, 3) corners (same order as harness.boxes.corners_3d)."""
+    unit = boxes.new_tensor([[0.5, 0.5, -0.5], [-0.5, 0.5, -0.5], [-0.5, -0.5, -0.5],
+                             [0.5, -0.5, -0.5], [0.5, 0.5, 0.5], [-0.5, 0.5, 0.5],
+                             [-0.5, -0.5, 0.5], [0.5, -0.5, 0.5]])  # (8, 3)
+    local = unit[None] * boxes[:, None, 3:6]  # (S, 8, 3)
+    c, s = torch.cos(boxes[:, 6])[:, None], torch.sin(boxes[:, 6])[:, None]
+    x = local[..., 0] * c - local[..., 1] * s
+    y = local[..., 0] * s + local[..., 1] * c
+    return torch.stack([x, y, local[..., 2]], -1) + boxes[:, None, 0:3]
+
+
+def corner_loss(pred: Tensor, gt: Tensor, delta: float = 1.0) -> Tensor:
+    """Huber loss of corner distances, the smaller of gt and gt flipped by pi. -> (S,)."""
+    flipped = torch.cat([gt[:, :6], (gt[:, 6:] + math.pi)], 1)
+    pc = box_corners(pred)
+    dist = torch.minimum((pc - box_corners(gt)).norm(dim=2), (pc - box_corners(flipped)).norm(dim=2))
+    return F.huber_loss(dist, torch.zeros_like(dist), delta=delta, reduction="none").mean(1)
+
+
+class RefineHead(nn.Module):
+    """Shared FC layers on pooled RoI features -> IoU-guided confidence logit and residuals.
+
+    forward(x (K, C)) -> (logit (K,), deltas (K, 7)).
+    """
+
+    def __init__(self, in_channels: int, hidden: Sequence[int], dropout: float = 0.3):
+        super().__init__()
+        layers: list[nn.Module] = []
+        for c_in, c_out in zip([in_channels, *hidden[:-1]], hidden):
+            layers += [nn.Linear(c_in, c_out, bias=False), nn.BatchNorm1d(c_out), nn.ReLU(),
+                       nn.Dropout(dropout)]
+        self.shared = nn.Sequential(*layers)
+        self.cls = nn.Linear(hidden[-1], 1)
+        self.reg = nn.Linear(hidden[-1], 7)
+        nn.init.normal_(self.reg.weight, std=0.001)
+        nn.init.zeros_(self.reg.bias)
+
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        h = self.shared(x) if x.shape[0] > 1 or not self.training else self._single(x)
+        return self.cls(h).squeeze(1), self.reg(h)
+
+    def _single(self, x: Tensor) -> Tensor:
+        """Training with fewer than two RoIs: BatchNorm with running statistics."""
+        was = self.shared.training
+        self.shared.eval()
+        h = self.shared(x)
+        self.shared.train(was)
+        return h
+
+
+def iou_score_target(iou: Tensor, cfg: RoITargetConfig) -> Tensor:
+    """Linear ramp of the RoI IoU: 0 at score_lo, 1 at score_hi. (S,) -> (S,)."""
+    return ((iou - cfg.score_lo) / (cfg.score_hi - cfg.score_lo)).clamp(0.0, 1.0)
+
+
+def refine_loss(logit: Tensor, deltas: Tensor, targets: RoITargets,
+                cfg: RoITargetConfig) -> dict[str, Tensor]:
+    """Stage-2 losses on S sampled RoIs: logit (S,), deltas (S, 7)."""
+    score = F.binary_cross_entropy_with_logits(logit, iou_score_target(targets.iou, cfg))
+    fg = targets.iou >= cfg.fg_iou  # (S,)
+    if bool(fg.any()):
+        rois, gt = targets.rois[fg], targets.gt[fg]
+        reg = F.smooth_l1_loss(deltas[fg], encode_canonical(gt, rois), beta=1.0 / 9.0,
+                               reduction="none").sum(1).mean()
+        corner = corner_loss(decode_canonical(deltas[fg], rois), gt).mean()
+    else:
+        reg = corner = deltas.sum() * 0.0
+    return {"rcnn_score": score, "rcnn_reg": reg, "rcnn_corner": corner}
