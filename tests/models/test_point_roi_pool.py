@@ -3,7 +3,13 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from models.point_roi_pool import inside_rois, roi_point_pool
+from models.point_roi_pool import (
+    RoISetAbstraction,
+    inside_rois,
+    roi_ball_query,
+    roi_farthest_point_sample,
+    roi_point_pool,
+)
 
 
 def brute_force_pool(xyz, feats, rois, num_samples, extra_width):
@@ -79,3 +85,75 @@ def test_roi_point_pool_onnx_matches_torch(tmp_path):
         ref = Pool()(torch.from_numpy(points), torch.from_numpy(rois))
         np.testing.assert_allclose(got[0], ref[0].numpy(), rtol=1e-5, atol=1e-5)
         np.testing.assert_array_equal(got[1], ref[1].numpy())
+
+
+def numpy_fps(xyz, num):
+    idx, dist = [0], np.full(len(xyz), np.inf)
+    for _ in range(1, num):
+        dist = np.minimum(dist, ((xyz - xyz[idx[-1]]) ** 2).sum(1))
+        idx.append(int(np.argmax(dist)))
+    return idx
+
+
+def numpy_ball_query(xyz, centre, radius, nsample):
+    inside = [i for i in range(len(xyz)) if ((xyz[i] - centre) ** 2).sum() < radius**2]
+    return (inside + [inside[0]] * nsample)[:nsample]
+
+
+def test_roi_fps_and_ball_query_match_numpy():
+    rng = np.random.default_rng(5)
+    xyz = rng.uniform(-2, 2, (6, 40, 3)).astype(np.float32)
+    idx = roi_farthest_point_sample(torch.from_numpy(xyz), 10).numpy()
+    for k in range(6):
+        assert idx[k].tolist() == numpy_fps(xyz[k].astype(np.float64), 10)
+    centres = xyz[np.arange(6)[:, None], idx]  # (6, 10, 3)
+    ball = roi_ball_query(torch.from_numpy(xyz), torch.from_numpy(centres), 1.2, 8).numpy()
+    for k in range(6):
+        for m in range(10):
+            assert ball[k, m].tolist() == numpy_ball_query(xyz[k], centres[k, m], 1.2, 8)
+
+
+def test_roi_set_abstraction_matches_per_roi_loop():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(6)
+    xyz = torch.from_numpy(rng.uniform(-2, 2, (4, 32, 3)).astype(np.float32))
+    feats = torch.from_numpy(rng.normal(size=(4, 32, 5)).astype(np.float32))
+    sa = RoISetAbstraction(8, 1.0, 6, [5, 16, 12]).eval()
+    centres, out = sa(xyz, feats)
+    for k in range(4):
+        idx = numpy_fps(xyz[k].double().numpy(), 8)
+        np.testing.assert_allclose(centres[k].numpy(), xyz[k, idx].numpy())
+        for m, c in enumerate(idx):
+            ball = numpy_ball_query(xyz[k].numpy(), xyz[k, c].numpy(), 1.0, 6)
+            grouped = torch.cat([xyz[k, ball] - xyz[k, c], feats[k, ball]], 1)  # (6, 8)
+            ref = sa.mlp(grouped).amax(0)
+            torch.testing.assert_close(out[k, m], ref, rtol=1e-5, atol=1e-5)
+    group_all = RoISetAbstraction(None, 0.0, 0, [5, 8]).eval()
+    _, pooled = group_all(xyz, feats)
+    torch.testing.assert_close(pooled[:, 0], group_all.mlp(torch.cat([xyz, feats], -1)).amax(1))
+
+
+class RoISA(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.sa = RoISetAbstraction(8, 1.0, 6, [2, 8])
+
+    def forward(self, xyz, feats):
+        return self.sa(xyz, feats)
+
+
+def test_roi_set_abstraction_onnx_matches_torch(tmp_path):
+    torch.manual_seed(0)
+    model, path = RoISA().eval(), tmp_path / "sa.onnx"
+    k = torch.export.Dim("k", min=0)
+    torch.onnx.export(model, (torch.rand(3, 16, 3), torch.rand(3, 16, 2)), str(path), dynamo=True,
+                      input_names=["xyz", "feats"], dynamic_shapes=({0: k}, {0: k}))
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    rng = np.random.default_rng(7)
+    for k in (5, 1, 0):
+        xyz, feats = rng.uniform(-2, 2, (k, 16, 3)).astype(np.float32), rng.normal(size=(k, 16, 2)).astype(np.float32)
+        got = sess.run(None, {"xyz": xyz, "feats": feats})
+        with torch.no_grad():
+            ref = model(torch.from_numpy(xyz), torch.from_numpy(feats))
+        np.testing.assert_allclose(got[0], ref[0].numpy(), atol=1e-6)
+        np.testing.assert_allclose(got[1], ref[1].numpy(), rtol=1e-5, atol=1e-5)
