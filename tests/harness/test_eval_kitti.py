@@ -1,0 +1,168 @@
+"""The KITTI evaluator on cases whose answer can be derived by hand."""
+import numpy as np
+import pytest
+
+from harness.eval_kitti import (DIFFICULTIES, Filter, build_eval_set, get_thresholds, image_box_overlap,
+                                kitti_ap, precision_recall)
+from harness.kitti import Labels
+
+
+def labels(rows, score=None, alpha=None):
+    """rows: (name, bbox top, bbox height, x, z, occluded, truncated)."""
+    k = len(rows)
+    if k == 0:
+        return Labels.empty(with_score=score is not None)
+    name = [r[0] for r in rows]
+    bbox = np.array([[100 + 150 * i, r[1], 200 + 150 * i, r[1] + r[2]] for i, r in enumerate(rows)], float)
+    loc = np.array([[r[3], 1.6, r[4]] for r in rows], float)
+    return Labels(name=np.array(name, dtype=object), truncated=np.array([r[6] for r in rows], float),
+                  occluded=np.array([r[5] for r in rows]), alpha=np.zeros(k) if alpha is None else np.asarray(alpha),
+                  bbox=bbox, dimensions=np.tile([1.5, 1.6, 3.9], (k, 1)), location=loc,
+                  rotation_y=np.zeros(k), score=None if score is None else np.asarray(score, float))
+
+
+CAR = ("Car", 150, 60, 0.0, 20.0, 0, 0.0)  # easy
+
+
+def car(x, z=20.0, height=60, occ=0, trunc=0.0, name="Car"):
+    return (name, 150, height, x, z, occ, trunc)
+
+
+N = 50  # frames are repeated: KITTI samples its 41 recall positions among the matched scores,
+# so AP reaches 100 only with at least 41 ground-truth objects
+
+
+def ap(gt, dt, metric="3d", overlap="0.7", level="moderate", kind="R40"):
+    return kitti_ap(build_eval_set(gt * N, dt * N))[metric][overlap][kind][level]
+
+
+def test_perfect_detections_give_100_and_aos_100():
+    gt = [labels([car(-5), car(0), car(5)]), labels([car(2, 30)])]
+    dt = [labels([car(-5), car(0), car(5)], score=[0.9, 0.8, 0.7]), labels([car(2, 30)], score=[0.6])]
+    res = kitti_ap(build_eval_set(gt * N, dt * N))
+    for metric in ("bbox", "bev", "3d", "aos"):
+        for key in ("0.7", "0.5", "official_0.5"):
+            for kind in ("R11", "R40"):
+                assert res[metric][key][kind] == pytest.approx({"easy": 100, "moderate": 100, "hard": 100})
+
+
+def test_few_objects_follow_the_reference_sampling():
+    # 4 objects found perfectly give 4 thresholds: precision 1 at sample positions 0..3, 0 after
+    res = kitti_ap(build_eval_set([labels([car(-5), car(0), car(5), car(9)])],
+                                  [labels([car(-5), car(0), car(5), car(9)], score=[0.9, 0.8, 0.7, 0.6])]))
+    assert res["3d"]["0.7"]["R40"]["moderate"] == pytest.approx(3 / 40 * 100)
+    assert res["3d"]["0.7"]["R11"]["moderate"] == pytest.approx(100 / 11)
+
+
+def test_no_detections_and_no_ground_truth_give_0():
+    gt = [labels([car(0)])]
+    assert ap(gt, [labels([], score=[])]) == 0.0
+    assert ap([labels([])], [labels([car(0)], score=[0.9])]) == 0.0
+    assert ap([labels([])], [labels([], score=[])]) == 0.0
+
+
+def test_only_false_positives_give_0_and_fp_below_tp_keeps_100():
+    gt = [labels([car(0)])]
+    assert ap(gt, [labels([car(8)], score=[0.9])]) == 0.0
+    # a false positive scored below the only true positive does not lower AP
+    assert ap(gt, [labels([car(0), car(8)], score=[0.9, 0.1])]) == pytest.approx(100.0)
+    # ... scored above it: precision 1/2 at every recall point
+    assert ap(gt, [labels([car(0), car(8)], score=[0.1, 0.9])]) == pytest.approx(50.0)
+    assert ap(gt, [labels([car(0), car(8)], score=[0.1, 0.9])], kind="R11") == pytest.approx(50.0)
+
+
+def test_half_recall_r11_and_r40():
+    gt = [labels([car(0), car(6)])]
+    dt = [labels([car(0)], score=[0.9])]
+    # recall 0.5 with precision 1: R40 counts recall points 1/40..20/40 -> 20/40; R11 0,0.1,..,0.5 -> 6/11
+    assert ap(gt, dt, kind="R40") == pytest.approx(50.0)
+    assert ap(gt, dt, kind="R11") == pytest.approx(600 / 11)
+
+
+def test_van_and_dontcare_are_ignored():
+    gt = [labels([car(0), car(6, name="Van")])]
+    dt = [labels([car(0), car(6)], score=[0.9, 0.95])]
+    assert ap(gt, dt) == pytest.approx(100.0)  # detection on a Van: neither TP nor FP
+    gt = [labels([car(0), car(6, name="DontCare")])]
+    dt = [labels([car(0), car(6)], score=[0.9, 0.95])]
+    assert ap(gt, dt, metric="bbox") == pytest.approx(100.0)  # DontCare absorbs the 2D FP
+    assert ap(gt, dt, metric="3d") == pytest.approx(50.0)  # ... only in the 2D metric, as in KITTI
+
+
+def test_difficulty_boundaries():
+    # height exactly 40 px is not easy (<= 40 ignored), 41 px is; occlusion 1 is moderate; trunc 0.3 ok for moderate
+    gt = [labels([car(0, height=40), car(6, height=41)])]
+    dt = [labels([car(0, height=40), car(6, height=41)], score=[0.9, 0.8])]
+    assert ap(gt, dt, level="easy") == pytest.approx(100.0)
+    gt = [labels([car(0, occ=1, trunc=0.3)])]
+    res = kitti_ap(build_eval_set(gt * N, [labels([], score=[])] * N))["3d"]["0.7"]["R40"]
+    assert res["moderate"] == 0.0 and res["hard"] == 0.0
+    found = [labels([car(0, occ=1, trunc=0.3)], score=[0.5])]
+    missed = kitti_ap(build_eval_set(gt * N, found * N))["3d"]["0.7"]["R40"]
+    assert missed == pytest.approx({"easy": 0.0, "moderate": 100.0, "hard": 100.0})
+    # a detection smaller than 25 px is ignored, not a false positive
+    gt = [labels([car(0)])]
+    dt = [labels([car(0), car(9, height=20)], score=[0.5, 0.9])]
+    assert ap(gt, dt) == pytest.approx(100.0)
+
+
+def test_heading_flipped_by_pi_halves_nothing_but_aos():
+    gt = [labels([car(0), car(6)])]
+    dt = [labels([car(0), car(6)], score=[0.9, 0.8], alpha=[np.pi, 0.0])]
+    res = kitti_ap(build_eval_set(gt * N, dt * N))
+    assert res["bbox"]["0.7"]["R40"]["moderate"] == pytest.approx(100.0)
+    # precision 1 everywhere; similarity (1+cos(pi))/2 = 0 for the first TP, 1 for the second:
+    # at recall 1/2 the cumulative similarity is 0/1, at recall 1 it is 1/2, interpolated to the right -> 50
+    assert res["aos"]["0.7"]["R40"]["moderate"] == pytest.approx(50.0)
+
+
+def test_3d_overlap_threshold_is_strict():
+    gt = [labels([car(0)])]
+    shifted = labels([car(0)], score=[0.9])
+    # shift along the length (rotation_y = 0: length along camera x): IoU = (3.9 - d) / (3.9 + d)
+    d = 3.9 * 0.3 / 1.7  # IoU exactly 0.7 -> not a match (overlap must be > 0.7)
+    shifted.location[0, 0] += d + 1e-6
+    assert ap(gt, [shifted]) == 0.0
+    shifted.location[0, 0] -= 2e-6
+    assert ap(gt, [shifted]) == pytest.approx(100.0)
+
+
+def test_distance_filter_and_height_off():
+    far = car(0, z=55.0, height=20)  # a far car is below 25 px: every KITTI difficulty ignores it
+    gt = [labels([far, car(3)])]
+    dt = [labels([car(3)], score=[0.9])]
+    es = build_eval_set(gt * N, dt * N)
+    assert kitti_ap(es)["3d"]["0.7"]["R40"]["hard"] == pytest.approx(100.0)
+    all_cars = Filter("all")
+    assert kitti_ap(es, filters=[all_cars])["3d"]["0.7"]["R40"]["all"] == pytest.approx(50.0)
+    near, mid = Filter("0-30", min_distance=0, max_distance=30), Filter("50-80", min_distance=50, max_distance=80)
+    res = kitti_ap(es, filters=[near, mid])["3d"]["0.7"]["R40"]
+    assert res == pytest.approx({"0-30": 100.0, "50-80": 0.0})
+
+
+def test_get_thresholds_and_image_overlap():
+    np.testing.assert_allclose(get_thresholds(np.array([0.9, 0.5, 0.7]), 3), [0.9, 0.7, 0.5])
+    assert len(get_thresholds(np.linspace(0, 1, 200), 200)) == 41
+    a = np.array([[0, 0, 10, 10]])
+    b = np.array([[5, 0, 15, 10]])
+    assert image_box_overlap(a, b)[0, 0] == pytest.approx(50 / 150)
+    assert image_box_overlap(a, b, 0)[0, 0] == pytest.approx(0.5)
+
+
+def test_frame_subsets_equal_separate_sets():
+    rng = np.random.default_rng(0)
+    gts, dts = [], []
+    for _ in range(12):
+        n = rng.integers(0, 4)
+        xs = rng.uniform(-8, 8, n)
+        gts.append(labels([car(x) for x in xs]))
+        found = xs[rng.uniform(size=n) < 0.7]
+        keep = found + rng.normal(0, 0.3, len(found))
+        dts.append(labels([car(x) for x in keep], score=rng.uniform(size=len(keep))))
+    es = build_eval_set(gts, dts)
+    sub = [1, 3, 5, 7]
+    a = kitti_ap(es, frames=sub)
+    b = kitti_ap(build_eval_set([gts[i] for i in sub], [dts[i] for i in sub]))
+    assert a == b
+    pr = precision_recall(es, "bev", DIFFICULTIES[1], 0.7)
+    assert (np.diff(pr["precision"]) <= 1e-12).all()  # interpolated precision never rises
