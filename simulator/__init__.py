@@ -1,1 +1,16 @@
-"""Ray-casting simulator of the SOTIF highway use case, writing KITTI data sets."""
+"""Ray-casting simulator of the SOTIF highway use case, writing KITTI data sets.
+
+`generate(out, preset="sotif"|"train", ...)` writes the data set (see simulator.dataset);
+`WEATHER_PRESETS` holds CARLA's 21 weather presets (see simulator.weather).
+"""
+from simulator.weather import WEATHER_PRESETS
+
+
+def generate(*args, **kwargs):
+    """Write a KITTI-layout data set; see simulator.dataset.generate."""
+    from simulator.dataset import generate as _generate
+
+    return _generate(*args, **kwargs)
+
+
+__all__ = ["WEATHER_PRESETS", "generate"]

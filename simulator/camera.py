@@ -1,0 +1,145 @@
+"""Front camera rendered by ray casting at a reduced resolution and upsampled.
+
+Shading: Lambert sun light (direction from the preset's sun altitude) + sky ambient, emissive
+head/tail lights, the ego's headlights at night, sky gradient with procedural clouds,
+distance haze from fog and rain, wet-road sky reflections (Fresnel), rain darkening and
+streaks. Rays come from the calibration's lidar2img, so any KITTI calib renders consistently.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+from simulator import effects
+from simulator.materials import ALBEDO, EMISSION, ROAD
+from simulator.raycast import RayScene
+from simulator.weather import WeatherPreset, fog_extinction, rain_rate_mmh, road_water_cover, time_of_day
+
+SUN_AZIMUTH = math.radians(150.0)  # world frame, CARLA's -1 means "unset"
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    width: int = 1242
+    height: int = 375
+    downsample: int = 3  # rays cast on a (height/downsample, width/downsample) grid
+
+    def as_dict(self) -> dict:
+        return asdict(self)
+
+
+def camera_rays(lidar2img: np.ndarray, width: int, height: int, step: int):
+    """Camera centre (3,) and unit ray directions (h, w, 3) in the LiDAR frame at pixel centres."""
+    m = np.asarray(lidar2img, dtype=np.float64)[:3]
+    inv = np.linalg.inv(m[:, :3])
+    centre = -inv @ m[:, 3]
+    u = (np.arange(width // step) + 0.5) * step - 0.5
+    v = (np.arange(height // step) + 0.5) * step - 0.5
+    uu, vv = np.meshgrid(u, v)
+    pix = np.stack([uu, vv, np.ones_like(uu)], -1)
+    d = pix @ inv.T
+    return centre, d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+@lru_cache(maxsize=4)
+def _rays_cached(key: bytes, width: int, height: int, step: int):
+    return camera_rays(np.frombuffer(key).reshape(4, 4), width, height, step)
+
+
+def sun_direction(p: WeatherPreset) -> np.ndarray:
+    alt = math.radians(p.sun_altitude_angle)
+    return np.array([math.cos(alt) * math.cos(SUN_AZIMUTH), math.cos(alt) * math.sin(SUN_AZIMUTH), math.sin(alt)])
+
+
+def sky_colour(dirs: np.ndarray, p: WeatherPreset, seed_phase: np.ndarray) -> np.ndarray:
+    """(N, 3) linear RGB of the sky in world directions, with clouds."""
+    up = np.clip(dirs[:, 2], 0.0, 1.0)[:, None]
+    tod = time_of_day(p)
+    horizon, zenith = {"Noon": ((0.70, 0.78, 0.88), (0.22, 0.42, 0.80)),
+                       "Sunset": ((0.95, 0.55, 0.30), (0.20, 0.25, 0.45)),
+                       "Night": ((0.015, 0.018, 0.03), (0.004, 0.006, 0.015))}[tod]
+    sky = np.array(horizon) * (1 - up) ** 2 + np.array(zenith) * (1 - (1 - up) ** 2)
+    cover = p.cloudiness / 100.0
+    u = dirs[:, 0] / np.maximum(dirs[:, 2], 0.05)
+    v = dirs[:, 1] / np.maximum(dirs[:, 2], 0.05)
+    noise = sum(np.sin(f * u + seed_phase[i]) * np.sin(f * 1.3 * v + seed_phase[i + 3]) / (i + 1)
+                for i, f in enumerate((0.8, 1.9, 4.1)))
+    clouds = np.clip((noise * 0.5 + 0.5) - (1.0 - cover) + 0.1, 0.0, 1.0)[:, None] * (dirs[:, 2:3] > 0)
+    grey = {"Noon": 0.75, "Sunset": 0.55, "Night": 0.02}[tod] * (1.0 - 0.5 * p.precipitation / 100.0)
+    return sky * (1 - clouds) + grey * clouds
+
+
+def _light(p: WeatherPreset) -> tuple[float, float]:
+    """(sun, ambient) intensities."""
+    sun = max(0.0, math.sin(math.radians(p.sun_altitude_angle))) * (1.0 - 0.75 * p.cloudiness / 100.0)
+    ambient = {"Noon": 0.45, "Sunset": 0.3, "Night": 0.015}[time_of_day(p)] * (1.0 - 0.3 * p.precipitation / 100.0)
+    return 1.6 * sun ** 0.5 if sun > 0 else 0.0, ambient
+
+
+def shade(hits, dirs_w: np.ndarray, cam_w: np.ndarray, ego_fwd: np.ndarray, p: WeatherPreset,
+          phase: np.ndarray) -> np.ndarray:
+    """(N, 3) linear RGB of camera rays given their hits."""
+    hit = np.isfinite(hits.t)
+    t = np.where(hit, hits.t, 0.0)
+    sun, amb = _light(p)
+    alb = ALBEDO[hits.material]
+    lam = np.clip(hits.normal @ sun_direction(p), 0.0, None)
+    col = alb * (amb + sun * lam)[:, None]
+    night = time_of_day(p) == "Night"
+    col += EMISSION[hits.material] * (1.0 if night else 0.12)
+    if night:  # ego headlights: cone around the driving direction, inverse-square fall-off
+        cosang = dirs_w @ ego_fwd
+        beam = np.clip((cosang - 0.93) / 0.07, 0, 1) * 60.0 / (10.0 + t ** 2)
+        col += alb * (beam * np.clip(-np.sum(hits.normal * dirs_w, 1), 0, 1))[:, None]
+    cover = road_water_cover(p)
+    road = hit & ROAD[hits.material]
+    if cover > 0 and road.any():
+        refl = dirs_w[road] - 2 * np.sum(dirs_w[road] * hits.normal[road], 1, keepdims=True) * hits.normal[road]
+        fres = effects.fresnel_reflectance(np.abs(np.sum(dirs_w[road] * hits.normal[road], 1)))[:, None]
+        col[road] = col[road] * (1 - 0.45 * cover) + cover * np.clip(fres * 1.5, 0, 1) * sky_colour(refl, p, phase)
+    sky = sky_colour(dirs_w, p, phase)
+    col = np.where(hit[:, None], col, sky)
+    beta = 0.0015 + 3 * fog_extinction(p) + 0.001 * rain_rate_mmh(p) ** 0.6
+    haze = np.exp(-beta * np.where(hit, t, 1e4))[:, None]
+    horizon = sky_colour(np.tile([[1.0, 0.0, 0.02]], (1, 1)), p, phase)[0]
+    return col * haze + horizon * (1 - haze)
+
+
+def _streaks(img: Image.Image, rain: float, night: bool, rng: np.random.Generator) -> Image.Image:
+    """Draw rain streaks (count ~ rain rate) onto the full-resolution image."""
+    n = int(40 * math.sqrt(rain))
+    if n == 0:
+        return img
+    overlay = Image.new("L", img.size, 0)
+    draw = ImageDraw.Draw(overlay)
+    w, h = img.size
+    x0, y0 = rng.uniform(0, w, n), rng.uniform(0, h, n)
+    length = rng.uniform(8, 30, n)
+    for x, y, ln in zip(x0, y0, length):
+        draw.line([(x, y), (x - 0.25 * ln, y + ln)], fill=int(60 if night else 110), width=1)
+    grey = Image.new("RGB", img.size, (200, 205, 215) if not night else (90, 95, 110))
+    return Image.composite(grey, img, overlay.point(lambda a: a // 2))
+
+
+def render(scene: RayScene, lidar2img: np.ndarray, pose, mount_height: float, p: WeatherPreset,
+           rng: np.random.Generator, spec: CameraSpec = CameraSpec()) -> np.ndarray:
+    """(H, W, 3) uint8 RGB image of the scene (vehicles already set in `scene`)."""
+    key = np.ascontiguousarray(lidar2img, dtype=np.float64).tobytes()
+    centre, dirs = _rays_cached(key, spec.width, spec.height, spec.downsample)
+    h, w = dirs.shape[:2]
+    rot = pose.rotation()
+    dirs_w = dirs.reshape(-1, 3) @ rot.T
+    cam_w = rot @ centre + np.array([pose.x, pose.y, mount_height])
+    hits = scene.cast(cam_w, dirs_w)
+    phase = rng.uniform(0, 2 * np.pi, 6)
+    col = shade(hits, dirs_w, cam_w, rot[:, 0], p, phase)
+    exposure = 1.0 if time_of_day(p) != "Night" else 2.5
+    srgb = np.clip(col * exposure, 0, 1) ** (1 / 2.2)
+    small = Image.fromarray((srgb.reshape(h, w, 3) * 255 + 0.5).astype(np.uint8), "RGB")
+    img = small.resize((spec.width, spec.height), Image.BILINEAR)
+    img = _streaks(img, rain_rate_mmh(p), time_of_day(p) == "Night", rng)
+    return np.asarray(img)

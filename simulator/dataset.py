@@ -1,0 +1,184 @@
+"""Generate a KITTI-layout data set: the SOTIF scenario per weather, or training scenes.
+
+Layout (DESIGN.md): <out>/training/{velodyne,image_2,calib,label_2}/NNNNNN.*,
+<out>/ImageSets/{train,val,test}.txt, <out>/meta/frames.csv, <out>/meta/dataset.json.
+Each frame also leaves meta/frames/NNNNNN.json (its meta row and file hashes); a re-run
+skips frames whose record, config and file hashes match (resume). dataset.json is last.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import multiprocessing as mp
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from harness import kitti
+from simulator.camera import CameraSpec
+from simulator.frame import FrameJob, make_frame
+from simulator.labels import LabelConfig
+from simulator.lidar import LidarSpec, carla_spec
+from simulator.road import RoadConfig
+from simulator.scenario import SotifConfig, TrainConfig
+from simulator.weather import DRY_PRESETS, WEATHER_PRESETS
+
+GENERATOR_VERSION = "1.0"
+PRESETS = ("sotif", "train")
+LIDAR_MODELS = ("physics", "carla")
+SOTIF_FRAMES, SOTIF_VAL = 547, 55
+TRAIN_FRAMES, TRAIN_VAL_SHARE = 400, 0.15
+
+
+@dataclass(frozen=True)
+class GenerateConfig:
+    """Everything that determines the bytes of the data set."""
+
+    preset: str
+    frames: int
+    weathers: tuple[str, ...]
+    seed: int
+    lidar: LidarSpec
+    camera: CameraSpec = CameraSpec()
+    road: RoadConfig = RoadConfig()
+    labels: LabelConfig = LabelConfig()
+    sotif: SotifConfig = SotifConfig()
+    train: TrainConfig = TrainConfig()
+    generator_version: str = GENERATOR_VERSION
+    extra: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return json.loads(json.dumps(asdict(self)))
+
+    def digest(self) -> str:
+        return hashlib.sha256(json.dumps(self.as_dict(), sort_keys=True).encode()).hexdigest()
+
+
+def _check_args(preset, frames, weathers, workers, lidar_model) -> tuple[str, ...]:
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
+    if lidar_model not in LIDAR_MODELS:
+        raise ValueError(f"unknown lidar model {lidar_model!r}; valid: {', '.join(LIDAR_MODELS)}")
+    if frames is not None and (not isinstance(frames, (int, np.integer)) or isinstance(frames, bool) or frames < 1):
+        raise ValueError(f"frames must be an integer >= 1, got {frames!r}")
+    if not isinstance(workers, (int, np.integer)) or isinstance(workers, bool) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    if isinstance(weathers, str):
+        weathers = [w.strip() for w in weathers.split(",") if w.strip()]
+    if weathers is None:
+        weathers = list(WEATHER_PRESETS) if preset == "sotif" else list(DRY_PRESETS)
+    if len(weathers) == 0:
+        raise ValueError("weathers must name at least one preset")
+    bad = [w for w in weathers if w not in WEATHER_PRESETS]
+    if bad:
+        raise ValueError(f"unknown weather preset(s) {', '.join(map(repr, bad))}; valid: {', '.join(WEATHER_PRESETS)}")
+    if len(set(weathers)) != len(weathers):
+        raise ValueError(f"weathers lists a preset twice: {weathers}")
+    return tuple(weathers)
+
+
+def plan_jobs(cfg: GenerateConfig) -> list[FrameJob]:
+    """Frame jobs in frame-id order with their split."""
+    if cfg.preset == "sotif":
+        n_w = len(cfg.weathers)
+        counts = [cfg.frames // n_w + (1 if i < cfg.frames % n_w else 0) for i in range(n_w)]
+        specs = [(w, k) for w, c in zip(cfg.weathers, counts) for k in range(c)]
+        n_val = int(round(cfg.frames * SOTIF_VAL / SOTIF_FRAMES))
+        other = "test"
+    else:
+        specs = [(cfg.weathers[i % len(cfg.weathers)], i) for i in range(cfg.frames)]
+        n_val = int(round(cfg.frames * TRAIN_VAL_SHARE))
+        other = "train"
+    val = set(np.unique(np.linspace(0, cfg.frames - 1, n_val).round().astype(int)).tolist()) if n_val else set()
+    max_step = max((k for _, k in specs), default=0) + 1
+    return [FrameJob(i, f"{i:06d}", w, k, "val" if i in val else other, max_step) for i, (w, k) in enumerate(specs)]
+
+
+def sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _record_path(root: Path, frame_id: str) -> Path:
+    return root / "meta" / "frames" / f"{frame_id}.json"
+
+
+def _resumable(root: Path, job: FrameJob, digest: str) -> dict | None:
+    """The stored meta row if the frame's record, config and file hashes all match."""
+    rec_path = _record_path(root, job.frame_id)
+    try:
+        rec = json.loads(rec_path.read_text())
+    except (OSError, ValueError):
+        return None
+    if rec.get("config") != digest or rec.get("row", {}).get("split") != job.split:
+        return None
+    for rel, digest_file in rec.get("files", {}).items():
+        p = root / rel
+        if not p.is_file() or sha256(p) != digest_file:
+            return None
+    return rec["row"]
+
+
+def _run_job(args) -> dict:
+    root, cfg, job, digest = args
+    row = _resumable(root, job, digest)
+    if row is not None:
+        return row
+    row, files = make_frame(root, cfg, job)
+    rec = {"config": digest, "row": row, "files": {str(p.relative_to(root)): sha256(p) for p in files}}
+    kitti.atomic_write_text(_record_path(root, job.frame_id), json.dumps(rec, indent=1, sort_keys=True))
+    return row
+
+
+def _write_outputs(root: Path, cfg: GenerateConfig, rows: list[dict]) -> None:
+    df = pd.DataFrame(sorted(rows, key=lambda r: r["frame_id"]))
+    for split in ("train", "val", "test"):
+        kitti.write_image_set(root / "ImageSets" / f"{split}.txt", df.loc[df["split"] == split, "frame_id"].tolist())
+    kitti.write_frames_meta(root / "meta" / "frames.csv", df)
+    files = sorted(p for p in root.rglob("*") if p.is_file() and p.name != "dataset.json" and ".tmp" not in p.name)
+    meta = {"generator": "sotif-bench simulator", "generator_version": cfg.generator_version, "seed": cfg.seed,
+            "config": cfg.as_dict(), "config_sha256": cfg.digest(), "sensors": {"lidar": cfg.lidar.as_dict(),
+            "camera": cfg.camera.as_dict()}, "n_frames": len(df),
+            "splits": {s: int((df["split"] == s).sum()) for s in ("train", "val", "test")},
+            "files": {str(p.relative_to(root)): sha256(p) for p in files}}
+    kitti.atomic_write_text(root / "meta" / "dataset.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
+
+
+def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathers: list[str] | None = None,
+             seed: int = 0, workers: int = 1, lidar_model: str = "physics", progress: bool = True) -> Path:
+    """Write the data set to `out` and return `out`. ValueError on invalid arguments."""
+    weathers = _check_args(preset, frames, weathers, workers, lidar_model)
+    if frames is None:
+        frames = SOTIF_FRAMES if preset == "sotif" else TRAIN_FRAMES
+    if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
+        raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    lidar = LidarSpec() if lidar_model == "physics" else carla_spec()
+    cfg = GenerateConfig(preset, int(frames), weathers, int(seed), lidar)
+    root = Path(out)
+    if root.exists() and not root.is_dir():
+        raise ValueError(f"{root}: output path exists and is not a directory")
+    (root / "meta" / "frames").mkdir(parents=True, exist_ok=True)
+    digest = cfg.digest()
+    jobs = [(root, cfg, job, digest) for job in plan_jobs(cfg)]
+    bar = tqdm(total=len(jobs), desc=f"simulate {preset}", unit="frame", disable=not progress)
+    rows = []
+    if workers == 1:
+        for args in jobs:
+            rows.append(_run_job(args))
+            bar.update()
+    else:
+        chunk = max(1, len(jobs) // (workers * 8))
+        method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
+        with mp.get_context(method).Pool(workers) as pool:
+            for row in pool.imap_unordered(_run_job, jobs, chunksize=chunk):
+                rows.append(row)
+                bar.update()
+    bar.close()
+    _write_outputs(root, cfg, rows)
+    return root

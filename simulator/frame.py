@@ -1,0 +1,103 @@
+"""One frame: scene state -> LiDAR scan, camera image, labels, calib, meta row (files on disk).
+
+Worlds, their Embree scenes and the SOTIF trajectories are cached per process. Random
+streams are seeded per frame: the LiDAR's from (seed, scenario, scenario step) for SOTIF so
+that a weather-blind sensor gives the same scan in every weather, the rest from the frame index.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from harness import kitti
+from simulator.camera import render
+from simulator.labels import frame_labels
+from simulator.lidar import scan
+from simulator.raycast import RayScene
+from simulator.scenario import FrameState, sotif_run, training_scene
+from simulator.weather import (WEATHER_PRESETS, precipitation_class, rain_rate_mmh, time_of_day)
+from simulator.world import build_world
+
+SCENARIO_TAG = {"sotif": 1, "train": 2}
+WORLD_TAG = {"sotif": 11, "train": 12}
+TRAIN_FRAMES_PER_WORLD = 100
+_SCENES: dict = {}
+_RUNS: dict = {}
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    index: int  # position in the data set
+    frame_id: str  # 6 digits
+    weather: str
+    step: int  # recorded step of the SOTIF run (training: = index)
+    split: str
+    run_length: int  # recorded frames of the longest SOTIF run
+
+
+def world_scene(cfg, job: FrameJob) -> RayScene:
+    """Cached Embree scene of the world this frame lives in."""
+    variant = 0 if cfg.preset == "sotif" else job.index // TRAIN_FRAMES_PER_WORLD
+    key = (cfg.road, cfg.seed, cfg.preset, variant)
+    if key not in _SCENES:
+        if len(_SCENES) >= 2:
+            _SCENES.pop(next(iter(_SCENES)))
+        rng = np.random.default_rng([cfg.seed, WORLD_TAG[cfg.preset], variant])
+        _SCENES[key] = RayScene(build_world(cfg.road, rng))
+    return _SCENES[key]
+
+
+def frame_state(cfg, job: FrameJob) -> FrameState:
+    if cfg.preset == "sotif":
+        key = (cfg.road, cfg.sotif, cfg.seed, job.run_length)
+        if key not in _RUNS:
+            _RUNS[key] = sotif_run(cfg.road, job.run_length, np.random.default_rng([cfg.seed, 21]), cfg.sotif)
+        return _RUNS[key][job.step]
+    return training_scene(cfg.road, np.random.default_rng([cfg.seed, 22, job.index]), cfg.train)
+
+
+def _row(cfg, job: FrameJob, state: FrameState, n_points: int, rows: np.ndarray) -> dict:
+    p = WEATHER_PRESETS[job.weather]
+    roles = [v.role for v in state.vehicles]
+    idx = {r: int(rows[roles.index(r)]) if r in roles else -1 for r in ("slow", "fast")}
+    return {
+        "frame_id": job.frame_id, "split": job.split, "scenario": cfg.preset, "weather": job.weather,
+        "time_of_day": time_of_day(p), "precipitation_class": precipitation_class(p),
+        "cloudiness": p.cloudiness, "precipitation": p.precipitation,
+        "precipitation_deposits": p.precipitation_deposits, "wetness": p.wetness,
+        "fog_density": p.fog_density, "fog_distance": p.fog_distance, "wind_intensity": p.wind_intensity,
+        "sun_altitude_angle": p.sun_altitude_angle, "rain_rate_mmh": rain_rate_mmh(p),
+        "scenario_time_s": round(state.time_s, 3), "ego_speed_mps": round(state.ego_speed, 4),
+        "slow_car_speed_mps": _num(state.info["slow_car_speed_mps"]),
+        "lane_change_time_s": _num(state.info["lane_change_time_s"]),
+        "slow_car_label_index": idx["slow"], "fast_car_label_index": idx["fast"],
+        "slow_car_distance_m": _num(state.info["slow_car_distance_m"]), "n_points": n_points,
+        "n_vehicles": len(state.vehicles), "lidar_model": cfg.lidar.model,
+    }
+
+
+def _num(v: float) -> float | None:
+    return None if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 4)
+
+
+def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:
+    """Simulate and write one frame; returns its meta row and the files written."""
+    scene = world_scene(cfg, job)
+    state = frame_state(cfg, job)
+    weather = WEATHER_PRESETS[job.weather]
+    scene.set_vehicles(state.vehicles)
+    lidar_key = job.step if cfg.preset == "sotif" else job.index
+    points = scan(scene, cfg.lidar, state.pose, weather, state.vehicles,
+                  np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 1, lidar_key]))
+    calib = kitti.kitti_calib(cfg.camera.width, cfg.camera.height)
+    image = render(scene, calib.lidar2img(), state.pose, cfg.lidar.mount_height, weather,
+                   np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 2, job.index]), cfg.camera)
+    labels, rows = frame_labels(scene, state.vehicles, state.pose, cfg.lidar.mount_height, calib, cfg.labels)
+    files = [kitti.write_points(kitti.frame_path(root, "velodyne", job.frame_id), points),
+             kitti.write_image(kitti.frame_path(root, "image_2", job.frame_id), image),
+             kitti.write_calib(kitti.frame_path(root, "calib", job.frame_id), calib),
+             kitti.write_labels(kitti.frame_path(root, "label_2", job.frame_id), labels)]
+    return _row(cfg, job, state, len(points), rows), files

@@ -1,0 +1,93 @@
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate, stats
+
+from simulator import effects
+
+
+def test_marshall_palmer_matches_dsd_integral():
+    rng = np.random.default_rng(0)
+    for rate in rng.uniform(0.5, 80.0, 5):
+        lam = 4.1 * rate ** -0.21
+        integral, _ = integrate.quad(lambda d: math.pi / 4 * d ** 2 * 8000.0 * math.exp(-lam * d), 0, 50)
+        assert effects.marshall_palmer_extinction(rate) == pytest.approx(2.0 * integral * 1e-6, rel=1e-6)
+    assert effects.marshall_palmer_extinction(0.0) == 0.0
+
+
+def test_fresnel_matches_snell_form():
+    rng = np.random.default_rng(1)
+    ti = rng.uniform(0.01, 1.55, 200)
+    tt = np.arcsin(np.sin(ti) / 1.33)
+    ref = 0.5 * (np.sin(ti - tt) ** 2 / np.sin(ti + tt) ** 2 + np.tan(ti - tt) ** 2 / np.tan(ti + tt) ** 2)
+    np.testing.assert_allclose(effects.fresnel_reflectance(np.cos(ti)), ref, rtol=1e-9)
+    cover = 0.7
+    np.testing.assert_allclose(effects.wet_reflectivity(np.full(200, 0.2), np.cos(ti), cover), 0.2 * (1 - cover * ref))
+
+
+def test_transmission_power_and_goodin_noise():
+    rng = np.random.default_rng(2)
+    r = rng.uniform(1, 120, 50)
+    t2 = effects.two_way_transmission(r, 0.003, 0.002, 10.0)
+    # optical depth as a numerical integral of the extinction along the path, both ways
+    depth = np.array([integrate.quad(lambda x: 0.003 + (0.002 if x > 10 else 0.0), 0, ri, points=[10.0])[0] for ri in r])
+    np.testing.assert_allclose(t2, np.exp(-2 * depth), rtol=1e-7)
+    np.testing.assert_allclose(effects.received_power(0.5, 0.8, r, t2), 0.5 * 0.8 * t2 / r ** 2)
+    np.testing.assert_allclose(effects.goodin_range_sigma(r, 4.0), 0.02 * r * (1 - math.exp(-4.0)) ** 2)
+
+
+def test_inverse_square_sampling_follows_cdf():
+    rng = np.random.default_rng(3)
+    a, b = 1.0, 12.0
+    x = effects.inverse_square_ranges(rng.random(20000), a, np.full(20000, b))
+    cdf = lambda r: (1 / a - 1 / np.asarray(r)) / (1 / a - 1 / b)
+    assert stats.kstest(x, cdf).pvalue > 0.01
+
+
+@pytest.mark.parametrize("kind", ["rain", "fog"])
+def test_backscatter_rate_matches_formula(kind):
+    rng = np.random.default_rng(4)
+    n = 200000
+    r_hit = rng.uniform(0.5, 60.0, n)
+    if kind == "rain":
+        alpha = effects.marshall_palmer_extinction(50.0)
+        out = effects.rain_backscatter(r_hit, alpha, rng)
+        p = 1 - np.exp(-effects.BACKSCATTER_K * alpha * np.clip(np.minimum(r_hit, 12.0) - 1.0, 0, None))
+    else:
+        alpha = 0.03
+        out = effects.fog_backscatter(r_hit, alpha, rng)
+        beta = 0.046 * alpha / -math.log(0.05)
+        p = 1 - np.exp(-effects.FOG_BACKSCATTER_K * beta * np.clip(np.minimum(r_hit, 30.0) - 1.5, 0, None))
+    hit = np.isfinite(out)
+    assert abs(hit.sum() - p.sum()) < 5 * math.sqrt(p.sum()) + 1
+    assert (out[hit] <= r_hit[hit] + 1e-9).all()
+
+
+def test_carla_dropoff_and_intensity():
+    rng = np.random.default_rng(5)
+    d = rng.uniform(0, 200, 300000)
+    inten = effects.carla_intensity(d)
+    np.testing.assert_allclose(inten, np.exp(-0.004 * d))
+    keep = effects.carla_keep(inten, rng)
+    p_int = np.where(inten > 0.8, 1.0, (0.4 / 0.8) * inten + 0.6)
+    expected = 0.55 * p_int
+    assert abs(keep.sum() - expected.sum()) < 5 * math.sqrt(expected.sum())
+
+
+def test_sunlight_probability_scales_with_altitude():
+    assert effects.sunlight_probability(-90, 0) == 0
+    assert effects.sunlight_probability(90, 0) == pytest.approx(2e-4)
+    assert effects.sunlight_probability(30, 100) == pytest.approx(2e-4 * 0.5 * 0.25)
+    rng = np.random.default_rng(6)
+    out = effects.sunlight_noise(500000, 90, 0, 120, rng)
+    assert abs(np.isfinite(out).sum() - 100) < 5 * 10
+
+
+def test_spray_behind_vehicle():
+    rng = np.random.default_rng(7)
+    pts = effects.spray_cloud(np.array([[10.0, 5.0, 0.0]]), np.array([0.0]), np.array([[4.0, 2.0, 1.5]]),
+                              np.array([30.0]), 1.0, rng)
+    assert len(pts) > 0 and (pts[:, 0] <= 10.0 - 2.0).all() and (pts[:, 2] >= 0).all()
+    assert len(effects.spray_cloud(np.array([[0.0, 0, 0]]), np.array([0.0]), np.array([[4.0, 2, 1.5]]),
+                                   np.array([30.0]), 0.0, rng)) == 0
