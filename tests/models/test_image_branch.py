@@ -15,6 +15,15 @@ from models.image_branch import (
 )
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny tensors on a shared 2-core machine: one intra-op thread avoids contention."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def numpy_project(xyz, lidar2img):
     out = np.zeros((len(xyz), 2)), np.zeros(len(xyz))
     for i, p in enumerate(xyz):

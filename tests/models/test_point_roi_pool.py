@@ -12,6 +12,15 @@ from models.point_roi_pool import (
 )
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny tensors on a shared 2-core machine: one intra-op thread avoids contention."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
 def brute_force_pool(xyz, feats, rois, num_samples, extra_width):
     """Per RoI, per point loops in float64: enlarged-box test, cyclic sampling, canonical frame."""
     k, c = len(rois), feats.shape[1]
