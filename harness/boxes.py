@@ -38,7 +38,7 @@ def corners_3d(boxes: np.ndarray) -> np.ndarray:
     return np.concatenate([bottom, top], axis=1)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _area(poly: np.ndarray) -> float:
     """Signed shoelace area of a polygon (n, 2); positive when counter-clockwise."""
     n = poly.shape[0]
@@ -48,7 +48,7 @@ def _area(poly: np.ndarray) -> float:
     return area * 0.5
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _clip_area(subj: np.ndarray, clip: np.ndarray) -> float:
     """Area of the intersection of two convex CCW quads (4, 2)."""
     if _area(subj) <= 0.0 or _area(clip) <= 0.0:
@@ -80,7 +80,7 @@ def _clip_area(subj: np.ndarray, clip: np.ndarray) -> float:
     return max(_area(poly[:n]), 0.0)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, error_model="numpy")
 def _bev_intersections(ca: np.ndarray, cb: np.ndarray) -> np.ndarray:
     """(Ka, Kb) BEV intersection areas of corner sets (Ka, 4, 2) and (Kb, 4, 2)."""
     out = np.zeros((ca.shape[0], cb.shape[0]))

@@ -1,0 +1,175 @@
+"""Evaluation driver: loads label and result folders, computes every metric, writes results JSON.
+
+``results.json`` schema (``"schema": "sotif-bench/results/1"``; AP values in percent):
+
+- ``kitti.<bbox|bev|3d|aos>.<0.7|0.5|official_0.5>.<R11|R40>.<easy|moderate|hard>``: the official
+  KITTI protocol for Car (``0.5`` = 0.5 for every metric; ``official_0.5`` = the official
+  script's second line: 0.7 for bbox, 0.5 for BEV and 3D).
+- ``headline.<3d|bev>.<0.7|0.5>``: AP40 over all distances with the 2D-height, occlusion and
+  truncation filters off (the SOTIF targets are far and small).
+- ``distance.<3d|bev>.<0.7|0.5>.<0-30|30-50|50-80>``: AP40 by ground-truth distance, filters off.
+- ``recall.<rcnn|roi>.<0.3|0.5|0.7>``: share of Car boxes whose best rotated 3D IoU with the
+  given boxes exceeds the threshold (micro-averaged over frames); ``roi`` only when the
+  prediction folder has ``rois/``.
+- ``groups`` (with ``--group-by``): ``{"column": C, "rows": {value: {n_frames, n_car, headline,
+  headline_ci95 {3d, bev: [lo, hi]}, kitti_moderate {3d, bev} (AP40 @0.7), distance, recall}}}``.
+- ``n_frames``, ``n_car``, ``frame_ids``.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from harness.eval_kitti import DIFFICULTIES, Filter, ap_r40, build_eval_set, frame_overlaps, kitti_ap, precision_recall
+from harness.kitti import KittiError, Labels, atomic_write_text, read_frames_meta, read_image_set, read_labels
+
+SCHEMA = "sotif-bench/results/1"
+ALL_DISTANCES = Filter("all")
+DISTANCE_BINS = (Filter("0-30", min_distance=0, max_distance=30), Filter("30-50", min_distance=30, max_distance=50),
+                 Filter("50-80", min_distance=50, max_distance=80))
+RECALL_THRESHOLDS = (0.3, 0.5, 0.7)
+
+
+def label_dir(path) -> Path:
+    """A label folder given as itself or as a KITTI data set root."""
+    path = Path(path)
+    for candidate in (path / "training" / "label_2", path / "label_2", path):
+        if candidate.is_dir():
+            return candidate
+    raise KittiError(path, "label folder not found")
+
+
+def frame_ids(labels: Path, split=None) -> list[str]:
+    if split is not None:
+        return read_image_set(split)
+    return sorted(p.stem for p in Path(labels).glob("*.txt"))
+
+
+def load_folder(folder: Path, ids, with_score: bool) -> list[Labels]:
+    out = []
+    for fid in ids:
+        p = Path(folder) / f"{fid}.txt"
+        if not p.is_file():
+            raise KittiError(p, "file not found (every frame of the split needs one, empty if nothing was found)")
+        out.append(read_labels(p, with_score=with_score))
+    return out
+
+
+def recall_at_iou(gt: list[Labels], boxes: list[Labels], thresholds=RECALL_THRESHOLDS, frames=None) -> dict:
+    """OpenPCDet-style recall: share of Car boxes whose best rotated 3D IoU with ``boxes`` > t."""
+    frames = range(len(gt)) if frames is None else frames
+    hit = np.zeros(len(thresholds))
+    total = 0
+    for i in frames:
+        cars = gt[i].select(np.asarray(gt[i].name, dtype=str) == "Car")
+        total += len(cars)
+        if len(cars) and len(boxes[i]):
+            best = frame_overlaps(boxes[i], cars)["3d"].max(axis=0)  # (G,)
+            hit += [(best > t).sum() for t in thresholds]
+    return {f"{t}": (float(h / total) if total else 0.0) for t, h in zip(thresholds, hit)}
+
+
+def _summary(es, frames=None) -> dict:
+    """Headline AP (all distances, filters off) and distance bins for 3D and BEV at 0.7 and 0.5."""
+    head, dist = {"3d": {}, "bev": {}}, {"3d": {}, "bev": {}}
+    for metric in ("3d", "bev"):
+        for thr in (0.7, 0.5):
+            head[metric][f"{thr}"] = ap_r40(precision_recall(es, metric, ALL_DISTANCES, thr, frames)["precision"])
+            dist[metric][f"{thr}"] = {f.name: ap_r40(precision_recall(es, metric, f, thr, frames)["precision"])
+                                      for f in DISTANCE_BINS}
+    return {"headline": head, "distance": dist}
+
+
+def bootstrap_ci(es, frames, metric: str, n: int = 200, seed: int = 0, thr: float = 0.7) -> list[float]:
+    """95% percentile interval of the headline AP40 over frames resampled with replacement."""
+    frames = np.asarray(frames)
+    if len(frames) == 0:
+        return [0.0, 0.0]
+    rng = np.random.default_rng(seed)
+    vals = [ap_r40(precision_recall(es, metric, ALL_DISTANCES, thr, rng.choice(frames, len(frames)))["precision"])
+            for _ in range(n)]
+    return [float(np.percentile(vals, 2.5)), float(np.percentile(vals, 97.5))]
+
+
+def _recalls(gt, preds: dict, frames=None) -> dict:
+    return {stage: recall_at_iou(gt, boxes, frames=frames) for stage, boxes in preds.items()}
+
+
+def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, column: str, n_boot: int, seed: int) -> dict:
+    if column not in meta.columns:
+        raise ValueError(f"--group-by {column!r}: no such column in the meta table "
+                         f"(columns: {', '.join(map(str, meta.columns))})")
+    by_id = meta.set_index("frame_id")[column]
+    missing = [i for i in ids if i not in by_id.index]
+    if missing:
+        raise ValueError(f"{len(missing)} frames of the split are not in the meta table (first: {missing[0]})")
+    values = by_id.loc[ids].to_numpy()
+    rows = {}
+    for value in pd.unique(values):
+        frames = np.flatnonzero(values == value)
+        m = kitti_ap(es, filters=DIFFICULTIES[1:2], overlaps={"0.7": {"bbox": 0.7, "bev": 0.7, "3d": 0.7}}, frames=frames)
+        rows[str(value)] = {
+            "n_frames": int(len(frames)),
+            "n_car": int(sum((np.asarray(gt[i].name, dtype=str) == "Car").sum() for i in frames)),
+            **_summary(es, frames),
+            "headline_ci95": {k: bootstrap_ci(es, frames, k, n_boot, seed) for k in ("3d", "bev")},
+            "kitti_moderate": {k: m[k]["0.7"]["R40"]["moderate"] for k in ("3d", "bev")},
+            "recall": _recalls(gt, stage_boxes, frames),
+        }
+    return {"column": column, "rows": rows}
+
+
+def evaluate(labels, predictions, split=None, group_by: str | None = None, meta=None,
+             n_bootstrap: int = 200, seed: int = 0) -> dict:
+    """Every metric of one prediction folder against one label folder (see module docstring)."""
+    labels, predictions = label_dir(labels), Path(predictions)
+    if not predictions.is_dir():
+        raise KittiError(predictions, "prediction folder not found")
+    ids = frame_ids(labels, split)
+    if not ids:
+        raise KittiError(split or labels, "no frames to evaluate")
+    gt = load_folder(labels, ids, with_score=False)
+    dt = load_folder(predictions, ids, with_score=True)
+    stage_boxes = {"rcnn": load_folder(predictions / "rcnn", ids, True) if (predictions / "rcnn").is_dir() else dt}
+    if (predictions / "rois").is_dir():
+        stage_boxes["roi"] = load_folder(predictions / "rois", ids, with_score=True)
+    es = build_eval_set(gt, dt)
+    result = {"schema": SCHEMA, "n_frames": len(ids),
+              "n_car": int(sum((np.asarray(g.name, dtype=str) == "Car").sum() for g in gt)),
+              "kitti": kitti_ap(es), **_summary(es), "recall": _recalls(gt, stage_boxes), "frame_ids": ids}
+    if group_by:
+        if meta is None:
+            raise ValueError("--group-by needs --meta meta/frames.csv")
+        result["groups"] = _group_rows(es, gt, stage_boxes, ids, read_frames_meta(meta), group_by, n_bootstrap, seed)
+    return result
+
+
+def write_results(path, result: dict) -> Path:
+    return atomic_write_text(path, json.dumps(result, indent=1, sort_keys=False) + "\n")
+
+
+def format_table(result: dict) -> str:
+    """A short plain-text table of the main numbers."""
+    lines = ["metric      overlap  AP      easy  moderate   hard"]
+    for metric in ("bbox", "bev", "3d", "aos"):
+        if metric not in result["kitti"]:
+            continue
+        for kind in ("R11", "R40"):
+            v = result["kitti"][metric]["0.7"][kind]
+            lines.append(f"{metric:<11} 0.7      {kind}  {v['easy']:6.2f} {v['moderate']:8.2f} {v['hard']:7.2f}")
+    h, d = result["headline"], result["distance"]
+    lines.append(f"headline AP40 (all distances, no height filter) 3D@0.7 {h['3d']['0.7']:.2f}  BEV@0.7 {h['bev']['0.7']:.2f}"
+                 f"  3D@0.5 {h['3d']['0.5']:.2f}")
+    lines.append("distance bins 3D@0.7: " + "  ".join(f"{k} m {v:.2f}" for k, v in d["3d"]["0.7"].items()))
+    for stage, rec in result["recall"].items():
+        lines.append(f"recall {stage}: " + "  ".join(f"@{k} {100 * v:.1f}%" for k, v in rec.items()))
+    if "groups" in result:
+        g = result["groups"]
+        lines.append(f"by {g['column']}: headline 3D AP40@0.7 [95% CI]")
+        for value, row in g["rows"].items():
+            lo, hi = row["headline_ci95"]["3d"]
+            lines.append(f"  {value:<16} {row['headline']['3d']['0.7']:6.2f} [{lo:6.2f}, {hi:6.2f}]  n={row['n_frames']}")
+    return "\n".join(lines)

@@ -1,0 +1,275 @@
+"""Inference through the ONNX contract: any conforming file runs here, ours or a user's.
+
+The harness knows the contract (DESIGN.md), not the models: ``check_contract`` reads a file's
+inputs, outputs and metadata and refuses a file that breaks the contract; ``OnnxDetector`` runs
+it in onnxruntime (or OpenVINO); ``predict`` runs a data set split and writes KITTI result
+files (camera-frame labels with projected 2D boxes) plus per-frame latency.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import onnx
+
+from harness.kitti import (Labels, atomic_write_text, frame_path, read_calib, read_image, read_image_set,
+                           read_points, write_labels)
+
+CONTRACT_VERSION = "1"
+REQUIRED_OUTPUTS = ("boxes", "scores")
+STAGE_OUTPUTS = ("rois", "roi_scores")
+STANDARD_DOMAINS = ("", "ai.onnx", "ai.onnx.ml")
+
+
+class ContractError(ValueError):
+    """An ONNX file does not follow the contract; the message names the file and the rule."""
+
+    def __init__(self, path, problem: str):
+        super().__init__(f"{path}: {problem}")
+
+
+@dataclass
+class ContractInfo:
+    path: Path
+    inputs: dict  # name -> list of dims (int or str)
+    outputs: dict
+    metadata: dict
+    sha256: str
+    op_histogram: dict = field(default_factory=dict)
+
+    @property
+    def uses_camera(self) -> bool:
+        return "image" in self.inputs
+
+    @property
+    def two_stage(self) -> bool:
+        return all(k in self.outputs for k in STAGE_OUTPUTS)
+
+    @property
+    def architecture(self) -> str:
+        return self.metadata.get("sotif.architecture", self.path.stem)
+
+    def image_size(self) -> tuple[int, int] | None:
+        """(H, W) the camera input expects, when fixed."""
+        if not self.uses_camera:
+            return None
+        h, w = self.inputs["image"][2:4]
+        return (h, w) if isinstance(h, int) and isinstance(w, int) else None
+
+
+def _dims(value_info) -> list:
+    shape = value_info.type.tensor_type.shape
+    return [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in shape.dim]
+
+
+def _elem(value_info) -> int:
+    return value_info.type.tensor_type.elem_type
+
+
+def sha256_file(path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _check_io(path, model) -> tuple[dict, dict]:
+    f32 = onnx.TensorProto.FLOAT
+    inputs = {i.name: i for i in model.graph.input}
+    outputs = {o.name: o for o in model.graph.output}
+    if "points" not in inputs:
+        raise ContractError(path, f"no input named 'points' (inputs: {', '.join(inputs) or 'none'})")
+    pts = inputs["points"]
+    if _elem(pts) != f32 or len(_dims(pts)) != 2 or _dims(pts)[1] != 4:
+        raise ContractError(path, f"input 'points' must be float32 [N, 4], got {_dims(pts)}")
+    if isinstance(_dims(pts)[0], int):
+        raise ContractError(path, "input 'points' must have a dynamic first dimension (any number of points)")
+    extra = set(inputs) - {"points", "image", "lidar2img"}
+    if extra:
+        raise ContractError(path, f"unexpected input(s) {sorted(extra)}; the contract allows points, image, lidar2img")
+    if ("image" in inputs) != ("lidar2img" in inputs):
+        raise ContractError(path, "camera models need both 'image' [1, 3, H, W] and 'lidar2img' [4, 4]")
+    if "image" in inputs and (len(_dims(inputs["image"])) != 4 or _dims(inputs["lidar2img"]) != [4, 4]):
+        raise ContractError(path, "'image' must be [1, 3, H, W] and 'lidar2img' [4, 4]")
+    for name in REQUIRED_OUTPUTS:
+        if name not in outputs:
+            raise ContractError(path, f"no output named '{name}' (outputs: {', '.join(outputs) or 'none'})")
+    shapes = {"boxes": 2, "scores": 1, "rois": 2, "roi_scores": 1, "rcnn_boxes": 2}
+    for name, rank in shapes.items():
+        if name in outputs:
+            d = _dims(outputs[name])
+            if _elem(outputs[name]) != f32 or len(d) != rank or (rank == 2 and d[1] != 7):
+                raise ContractError(path, f"output '{name}' must be float32 {'[M, 7]' if rank == 2 else '[M]'}, got {d}")
+    if ("rois" in outputs) != ("roi_scores" in outputs):
+        raise ContractError(path, "two-stage outputs come in pairs: 'rois' and 'roi_scores'")
+    return ({k: _dims(v) for k, v in inputs.items()}, {k: _dims(v) for k, v in outputs.items()})
+
+
+def check_contract(path) -> ContractInfo:
+    """Validate an ONNX file against the contract of DESIGN.md; raise ContractError if it breaks it."""
+    path = Path(path)
+    if not path.is_file():
+        raise ContractError(path, "file not found")
+    try:
+        model = onnx.load(str(path), load_external_data=False)
+    except Exception as e:  # noqa: BLE001 - onnx raises several kinds of decode errors
+        raise ContractError(path, f"not a readable ONNX model ({type(e).__name__}: {e})") from None
+    for init in model.graph.initializer:
+        if init.data_location == onnx.TensorProto.EXTERNAL:
+            raise ContractError(path, f"weight '{init.name}' is stored in an external file; the contract needs one self-contained file")
+    try:
+        onnx.checker.check_model(model)
+    except onnx.checker.ValidationError as e:
+        raise ContractError(path, f"onnx.checker rejects the model: {str(e).splitlines()[0]}") from None
+    inputs, outputs = _check_io(path, model)
+    local = {f.domain for f in model.functions}
+    hist: dict[str, int] = {}
+    for node in model.graph.node:
+        if node.domain not in STANDARD_DOMAINS and node.domain not in local:
+            raise ContractError(path, f"node '{node.name}' uses the non-standard op {node.domain}::{node.op_type}")
+        hist[node.op_type] = hist.get(node.op_type, 0) + 1
+    meta = {p.key: p.value for p in model.metadata_props}
+    if meta.get("sotif.contract") != CONTRACT_VERSION:
+        raise ContractError(path, f"metadata 'sotif.contract' must be \"{CONTRACT_VERSION}\", got {meta.get('sotif.contract')!r}")
+    return ContractInfo(path, inputs, outputs, meta, sha256_file(path), dict(sorted(hist.items())))
+
+
+class OnnxDetector:
+    """A contract-conforming ONNX detector behind onnxruntime (default) or OpenVINO."""
+
+    def __init__(self, path, runtime: str = "onnxruntime", threads: int | None = None):
+        self.info = check_contract(path)
+        self.runtime = runtime
+        if runtime == "onnxruntime":
+            import onnxruntime as ort
+            opts = ort.SessionOptions()
+            if threads:
+                opts.intra_op_num_threads = threads
+            opts.log_severity_level = 3
+            self._sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            self.output_names = [o.name for o in self._sess.get_outputs()]
+            self._run = lambda feeds: dict(zip(self.output_names, self._sess.run(None, feeds)))
+        elif runtime == "openvino":
+            try:
+                import openvino as ov
+            except ImportError:
+                raise ValueError("--runtime openvino needs the optional extra: pip install 'sotif-bench[openvino]'") from None
+            compiled = ov.Core().compile_model(str(path), "CPU")
+            self.output_names = [o.get_any_name() for o in compiled.outputs]
+            self._run = lambda feeds: {k: np.asarray(v) for k, v in
+                                       zip(self.output_names, compiled(feeds).values())}
+        else:
+            raise ValueError(f"unknown runtime {runtime!r}; expected onnxruntime or openvino")
+
+    def __call__(self, points: np.ndarray, image: np.ndarray | None = None,
+                 lidar2img: np.ndarray | None = None) -> dict:
+        feeds = {"points": np.ascontiguousarray(points, dtype=np.float32)}
+        if self.info.uses_camera:
+            if image is None or lidar2img is None:
+                raise ValueError(f"{self.info.path}: this model needs a camera image and lidar2img")
+            feeds["image"] = np.ascontiguousarray(image, dtype=np.float32)
+            feeds["lidar2img"] = np.ascontiguousarray(lidar2img, dtype=np.float32)
+        out = self._run(feeds)
+        for name in out:
+            out[name] = np.asarray(out[name], dtype=np.float32)
+            if not np.isfinite(out[name]).all():
+                raise ValueError(f"{self.info.path}: output '{name}' contains NaN or inf")
+        return out
+
+
+def image_input(rgb: np.ndarray, size: tuple[int, int] | None) -> np.ndarray:
+    """(H, W, 3) uint8 -> (1, 3, H', W') float32 in [0, 1], resized to the model's fixed size."""
+    if size is not None and rgb.shape[:2] != tuple(size):
+        from PIL import Image
+        rgb = np.asarray(Image.fromarray(rgb).resize((size[1], size[0]), Image.BILINEAR))
+    return (rgb.astype(np.float32) / 255.0).transpose(2, 0, 1)[None]
+
+
+def scale_lidar2img(lidar2img: np.ndarray, from_hw, to_hw) -> np.ndarray:
+    """lidar2img for an image resized from (H, W) to (H', W')."""
+    s = np.diag([to_hw[1] / from_hw[1], to_hw[0] / from_hw[0], 1.0, 1.0])
+    return (s @ lidar2img).astype(np.float32)
+
+
+def boxes_to_results(boxes: np.ndarray, scores: np.ndarray, calib, image_hw) -> Labels:
+    """KITTI result labels of LiDAR boxes, keeping those visible in the camera image."""
+    labels = Labels.from_lidar(boxes, calib, ["Car"] * len(boxes), score=scores,
+                               image_size=(image_hw[1], image_hw[0]))
+    visible = ((labels.location[:, 2] > 0) & (labels.bbox[:, 2] > labels.bbox[:, 0])
+               & (labels.bbox[:, 3] > labels.bbox[:, 1]))
+    return labels.select(visible)
+
+
+def _frame_inputs(det: OnnxDetector, root: Path, fid: str):
+    points = read_points(frame_path(root, "velodyne", fid))
+    calib = read_calib(frame_path(root, "calib", fid))
+    img_path = frame_path(root, "image_2", fid)
+    hw = (375, 1242)
+    image = l2i = None
+    if det.info.uses_camera or img_path.is_file():
+        if det.info.uses_camera:
+            rgb = read_image(img_path)
+            hw = rgb.shape[:2]
+            size = det.info.image_size()
+            image = image_input(rgb, size)
+            l2i = scale_lidar2img(calib.lidar2img(), hw, size or hw)
+        else:
+            from PIL import Image
+            with Image.open(img_path) as im:
+                hw = (im.height, im.width)
+    return points, calib, image, l2i, hw
+
+
+def predict(onnx_path, data, out, split: str = "test", runtime: str = "onnxruntime",
+            progress: bool = True, threads: int | None = None) -> dict:
+    """Run a split through an ONNX detector; write ``out/<id>.txt`` (+ ``rois/``, ``rcnn/``)
+    and ``out/predict.json`` (latency p50/p90, frames/s). Resumes an interrupted run."""
+    from tqdm import tqdm
+
+    data, out = Path(data), Path(out)
+    det = OnnxDetector(onnx_path, runtime=runtime, threads=threads)
+    ids = read_image_set(data / "ImageSets" / f"{split}.txt")
+    stamp = {"onnx_sha256": det.info.sha256, "runtime": runtime, "split": split}
+    progress_file = out / ".progress.json"
+    if progress_file.is_file() and json.loads(progress_file.read_text()) != stamp:
+        for old in out.rglob("*.txt"):
+            old.unlink()  # results of another model or split: start over
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(progress_file, json.dumps(stamp))
+    latencies, n_points = [], []
+    for fid in tqdm(ids, desc=f"predict {det.info.architecture}", disable=not progress, unit="frame"):
+        if (out / f"{fid}.txt").is_file():
+            continue
+        points, calib, image, l2i, hw = _frame_inputs(det, data, fid)
+        if not latencies:
+            det(points, image, l2i)  # warm-up: first-run allocations are not latency
+        t0 = time.perf_counter()
+        res = det(points, image, l2i)
+        latencies.append(1000 * (time.perf_counter() - t0))
+        n_points.append(len(points))
+        if det.info.two_stage:
+            write_labels(out / "rois" / f"{fid}.txt", boxes_to_results(res["rois"], res["roi_scores"], calib, hw))
+            if "rcnn_boxes" in res:
+                write_labels(out / "rcnn" / f"{fid}.txt",
+                             boxes_to_results(res["rcnn_boxes"], res["roi_scores"], calib, hw))
+        write_labels(out / f"{fid}.txt", boxes_to_results(res["boxes"], res["scores"], calib, hw))
+    summary = latency_summary(latencies) | {"n_frames": len(ids), "n_points_mean": float(np.mean(n_points)) if n_points else None,
+                                           **stamp, "architecture": det.info.architecture,
+                                           "two_stage": det.info.two_stage, "uses_camera": det.info.uses_camera}
+    if latencies or not (out / "predict.json").is_file():
+        atomic_write_text(out / "predict.json", json.dumps(summary, indent=1))
+        atomic_write_text(out / "latency_ms.csv", "latency_ms\n" + "".join(f"{v:.4f}\n" for v in latencies))
+    return json.loads((out / "predict.json").read_text())
+
+
+def latency_summary(latencies_ms) -> dict:
+    lat = np.asarray(latencies_ms, dtype=np.float64)
+    if lat.size == 0:
+        return {"latency_ms_p50": None, "latency_ms_p90": None, "latency_ms_mean": None, "fps": None, "n_timed": 0}
+    return {"latency_ms_p50": float(np.percentile(lat, 50)), "latency_ms_p90": float(np.percentile(lat, 90)),
+            "latency_ms_mean": float(lat.mean()), "fps": float(1000.0 / lat.mean()), "n_timed": int(lat.size)}

@@ -1,0 +1,57 @@
+import numpy as np
+import pytest
+
+from harness import kitti
+from harness.infer import ContractError, OnnxDetector, check_contract, predict
+
+
+def test_contract_accepts_conforming_file_and_counts_ops(make_onnx, tmp_path):
+    info = check_contract(make_onnx(tmp_path / "c.onnx"))
+    assert info.architecture == "centroid" and not info.two_stage and not info.uses_camera
+    assert info.op_histogram == {"Concat": 1, "Identity": 1, "ReduceMean": 1, "Slice": 1}
+    assert check_contract(make_onnx(tmp_path / "t.onnx", two_stage=True)).two_stage
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"drop_output": "scores"}, "no output named 'scores'"),
+    ({"metadata": {}}, "sotif.contract"),
+    ({"custom_op": True}, "non-standard op my.ops::Voxelize"),
+])
+def test_contract_refuses_broken_files(make_onnx, tmp_path, kwargs, message):
+    path = make_onnx(tmp_path / "bad.onnx", **kwargs)
+    with pytest.raises(ContractError, match=rf"bad\.onnx: .*{message}"):
+        check_contract(path)
+
+
+def test_contract_refuses_garbage_and_missing(tmp_path):
+    (tmp_path / "junk.onnx").write_bytes(b"\x00\x01 not a model")
+    with pytest.raises(ContractError, match=r"junk\.onnx"):
+        check_contract(tmp_path / "junk.onnx")
+    with pytest.raises(ContractError, match="file not found"):
+        check_contract(tmp_path / "none.onnx")
+
+
+def test_detector_runs_and_rejects_nan_outputs(make_onnx, tmp_path):
+    det = OnnxDetector(make_onnx(tmp_path / "c.onnx"))
+    pts = np.random.default_rng(0).normal(size=(100, 4)).astype(np.float32)
+    out = det(pts)
+    np.testing.assert_allclose(out["boxes"][0, :3], pts[:, :3].mean(axis=0), rtol=1e-5, atol=1e-6)
+    pts[3, 0] = np.nan
+    with pytest.raises(ValueError, match="output 'boxes' contains NaN"):
+        det(pts)  # a NaN box is refused, never written as a result
+
+
+def test_predict_writes_kitti_results_and_resumes(make_onnx, tmp_path, dataset):
+    onnx_path = make_onnx(tmp_path / "c.onnx", two_stage=True)
+    out = tmp_path / "pred"
+    summary = predict(onnx_path, dataset, out, progress=False)
+    assert summary["n_frames"] == 6 and summary["n_timed"] == 6 and summary["latency_ms_p50"] > 0
+    res = kitti.read_labels(out / "000000.txt", with_score=True)
+    assert len(res) == 1 and res.score[0] == pytest.approx(0.9)
+    calib = kitti.read_calib(kitti.frame_path(dataset, "calib", "000000"))
+    pts = kitti.read_points(kitti.frame_path(dataset, "velodyne", "000000"))
+    np.testing.assert_allclose(res.to_lidar(calib)[0, :3], pts[:, :3].mean(axis=0), atol=2e-3)
+    assert (out / "rois" / "000000.txt").is_file()
+    (out / "000003.txt").unlink()
+    again = predict(onnx_path, dataset, out, progress=False)
+    assert again["n_timed"] == 1  # only the missing frame ran
