@@ -3,14 +3,7 @@
 `generate(out, preset="sotif"|"train", ...)` writes the data set (see simulator.dataset);
 `WEATHER_PRESETS` holds CARLA's 21 weather presets (see simulator.weather).
 """
+from simulator.dataset import generate
 from simulator.weather import WEATHER_PRESETS
-
-
-def generate(*args, **kwargs):
-    """Write a KITTI-layout data set; see simulator.dataset.generate."""
-    from simulator.dataset import generate as _generate
-
-    return _generate(*args, **kwargs)
-
 
 __all__ = ["WEATHER_PRESETS", "generate"]

@@ -11,8 +11,10 @@
 - Range noise in rain (Goodin et al. 2019): sigma = 0.02 r (1 - exp(-R))^2.
 - Raindrop back-scatter (LISA, Kilic et al. 2021): a ray returns from a drop with probability
   1 - exp(-k alpha L) over the first L metres; drop range drawn with density ~ 1/r^2.
-- Wet road: unpolarised Fresnel reflectance of water (n = 1.33) sends that share of the beam
-  away specularly, rho_wet = rho (1 - cover F(theta)); spray clouds behind moving vehicles.
+- Wet road: the unpolarised Fresnel reflectance F of water (n = 1.33) sends that share of the
+  beam away specularly on the way in and out, and soaked asphalt is darker:
+  rho_wet = rho (1 - 0.4 c) ((1 - c) + c (1 - F(theta))^2) for water cover c; spray clouds
+  behind moving vehicles.
 - Fog (Hahner et al. 2021): Beer-Lambert attenuation alpha = -ln(0.05) / MOR; soft-target
   back-scatter with beta = 0.046 / MOR, simplified to a return probability 1 - exp(-k beta L)
   near the sensor that wins when it comes before the hard target (first return).
@@ -29,6 +31,7 @@ import numpy as np
 MP_N0 = 8000.0  # Marshall-Palmer intercept, m^-3 mm^-1
 Q_EXT = 2.0  # extinction efficiency of drops >> wavelength
 WATER_INDEX = 1.33
+WET_DARKENING = 0.4  # relative albedo loss of a soaked surface
 BACKSCATTER_K = 0.12  # LISA-style detectable drop returns per unit optical depth
 FOG_BETA_PER_MOR = 0.046  # Hahner et al.: beta = 0.046 / MOR
 FOG_BACKSCATTER_K = 8.0  # detectable fog returns per unit back-scatter depth
@@ -74,8 +77,13 @@ def fresnel_reflectance(cos_i: np.ndarray, n: float = WATER_INDEX) -> np.ndarray
 
 
 def wet_reflectivity(rho: np.ndarray, cos_i: np.ndarray, cover: float) -> np.ndarray:
-    """Diffuse reflectivity left after the water film's specular reflection."""
-    return rho * (1.0 - cover * fresnel_reflectance(cos_i))
+    """Diffuse reflectivity of a partly water-covered surface.
+
+    Under the film (share `cover`) the beam crosses the water surface twice, keeping
+    (1 - F)^2, and the soaked surface is darker by WET_DARKENING * cover (Lekner & Dorf 1988).
+    """
+    film = (1.0 - cover) + cover * (1.0 - fresnel_reflectance(cos_i)) ** 2
+    return rho * (1.0 - WET_DARKENING * cover) * film
 
 
 def inverse_square_ranges(u: np.ndarray, r_min: float, r_max: np.ndarray) -> np.ndarray:

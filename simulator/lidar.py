@@ -84,6 +84,16 @@ class Pose:
         return (np.asarray(pts_world) - [self.x, self.y, mount_height]) @ self.rotation()
 
 
+def detection_range(spec: LidarSpec, weather: WeatherPreset, reflectivity: float = 0.1) -> float:
+    """Largest range (m) at which a normal-incidence Lambertian target is still detected."""
+    a_rain = effects.marshall_palmer_extinction(rain_rate_mmh(weather))
+    a_fog = fog_extinction(weather)
+    r = np.linspace(spec.min_range, spec.max_range, 20001)
+    t2 = effects.two_way_transmission(r, a_rain, a_fog, weather.fog_distance)
+    ok = effects.received_power(reflectivity, 1.0, r, t2) >= spec.min_power
+    return float(r[ok].max()) if ok.any() else 0.0
+
+
 def cast_pattern(scene: RayScene, spec: LidarSpec, pose: Pose):
     """Hits of the full scan pattern; returns (unit dirs in LiDAR frame, hits)."""
     dirs = ray_directions(spec)

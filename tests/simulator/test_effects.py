@@ -23,7 +23,8 @@ def test_fresnel_matches_snell_form():
     ref = 0.5 * (np.sin(ti - tt) ** 2 / np.sin(ti + tt) ** 2 + np.tan(ti - tt) ** 2 / np.tan(ti + tt) ** 2)
     np.testing.assert_allclose(effects.fresnel_reflectance(np.cos(ti)), ref, rtol=1e-9)
     cover = 0.7
-    np.testing.assert_allclose(effects.wet_reflectivity(np.full(200, 0.2), np.cos(ti), cover), 0.2 * (1 - cover * ref))
+    np.testing.assert_allclose(effects.wet_reflectivity(np.full(200, 0.2), np.cos(ti), cover),
+                               0.2 * (1 - 0.4 * cover) * ((1 - cover) + cover * (1 - ref) ** 2))
 
 
 def test_transmission_power_and_goodin_noise():
