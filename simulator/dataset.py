@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from harness import kitti
 from simulator.camera import CameraSpec
-from simulator.frame import FrameJob, make_frame
+from simulator.frame import ROW_COLUMNS, FrameJob, make_frame
 from simulator.labels import LabelConfig
 from simulator.lidar import LidarSpec, carla_spec
 from simulator.road import RoadConfig
@@ -137,7 +137,7 @@ def _run_job(args) -> dict:
 
 
 def _write_outputs(root: Path, cfg: GenerateConfig, rows: list[dict]) -> None:
-    df = pd.DataFrame(sorted(rows, key=lambda r: r["frame_id"]))
+    df = pd.DataFrame(sorted(rows, key=lambda r: r["frame_id"]), columns=list(ROW_COLUMNS))
     for split in ("train", "val", "test"):
         kitti.write_image_set(root / "ImageSets" / f"{split}.txt", df.loc[df["split"] == split, "frame_id"].tolist())
     kitti.write_frames_meta(root / "meta" / "frames.csv", df)

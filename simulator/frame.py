@@ -24,6 +24,12 @@ from simulator.world import build_world
 SCENARIO_TAG = {"sotif": 1, "train": 2}
 WORLD_TAG = {"sotif": 11, "train": 12}
 TRAIN_FRAMES_PER_WORLD = 100
+MIN_RUN_FRAMES = 27  # the scenario is always simulated to its end (lane change included)
+ROW_COLUMNS = ("frame_id", "split", "scenario", "weather", "time_of_day", "precipitation_class", "cloudiness",
+               "precipitation", "precipitation_deposits", "wetness", "fog_density", "fog_distance",
+               "wind_intensity", "sun_altitude_angle", "rain_rate_mmh", "scenario_time_s", "ego_speed_mps",
+               "slow_car_speed_mps", "lane_change_time_s", "slow_car_label_index", "fast_car_label_index",
+               "slow_car_distance_m", "n_points", "n_vehicles", "lidar_model")
 _SCENES: dict = {}
 _RUNS: dict = {}
 
@@ -54,7 +60,8 @@ def frame_state(cfg, job: FrameJob) -> FrameState:
     if cfg.preset == "sotif":
         key = (cfg.road, cfg.sotif, cfg.seed, job.run_length)
         if key not in _RUNS:
-            _RUNS[key] = sotif_run(cfg.road, job.run_length, np.random.default_rng([cfg.seed, 21]), cfg.sotif)
+            n = max(job.run_length, MIN_RUN_FRAMES)
+            _RUNS[key] = sotif_run(cfg.road, n, np.random.default_rng([cfg.seed, 21]), cfg.sotif)
         return _RUNS[key][job.step]
     return training_scene(cfg.road, np.random.default_rng([cfg.seed, 22, job.index]), cfg.train)
 

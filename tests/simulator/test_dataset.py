@@ -1,0 +1,86 @@
+import json
+
+import numpy as np
+import pytest
+
+from harness import kitti
+from simulator import generate
+from simulator.dataset import GenerateConfig, plan_jobs
+from simulator.lidar import LidarSpec
+from simulator.weather import WEATHER_PRESETS
+
+COLUMNS = {"frame_id", "split", "scenario", "weather", "time_of_day", "precipitation_class", "cloudiness",
+           "precipitation", "precipitation_deposits", "wetness", "fog_density", "sun_altitude_angle",
+           "rain_rate_mmh", "scenario_time_s", "ego_speed_mps", "slow_car_speed_mps", "lane_change_time_s",
+           "slow_car_label_index", "fast_car_label_index", "slow_car_distance_m", "n_points"}
+
+
+@pytest.fixture(scope="module")
+def sotif_set(tmp_path_factory):
+    return generate(tmp_path_factory.mktemp("sotif"), "sotif", frames=4, weathers=["ClearNoon", "HardRainNight"],
+                    seed=3, workers=1, progress=False)
+
+
+def test_files_parse_with_the_project_reader(sotif_set):
+    meta = kitti.read_frames_meta(sotif_set / "meta" / "frames.csv")
+    assert COLUMNS <= set(meta.columns) and len(meta) == 4
+    assert list(meta["weather"]) == ["ClearNoon"] * 2 + ["HardRainNight"] * 2
+    ids = sum((kitti.read_image_set(sotif_set / "ImageSets" / f"{s}.txt") for s in ("train", "val", "test")), [])
+    assert sorted(ids) == list(meta["frame_id"])
+    for _, row in meta.iterrows():
+        fid = row["frame_id"]
+        pts = kitti.read_points(kitti.frame_path(sotif_set, "velodyne", fid))
+        assert len(pts) == row["n_points"] and (pts[:, 3] >= 0).all() and (pts[:, 3] <= 1).all()
+        labels = kitti.read_labels(kitti.frame_path(sotif_set, "label_2", fid))
+        calib = kitti.read_calib(kitti.frame_path(sotif_set, "calib", fid))
+        assert kitti.read_image(kitti.frame_path(sotif_set, "image_2", fid)).shape == (375, 1242, 3)
+        fast = row["fast_car_label_index"]
+        assert 0 <= fast < len(labels) and labels.name[fast] == "Car"
+        box = labels.to_lidar(calib)[fast]
+        assert 35 < box[0] < 70 and abs(box[1]) < 1.0  # the fast car drives ahead in the ego lane
+    data = json.loads((sotif_set / "meta" / "dataset.json").read_text())
+    assert data["seed"] == 3 and data["config"]["lidar"]["name"] == "HDL-64E"
+    assert "training/velodyne/000000.bin" in data["files"] and "meta/frames.csv" in data["files"]
+
+
+def test_same_seed_same_bytes_and_resume(sotif_set, tmp_path):
+    again = generate(tmp_path / "b", "sotif", frames=4, weathers=["ClearNoon", "HardRainNight"], seed=3,
+                     workers=2, progress=False)
+    a = json.loads((sotif_set / "meta" / "dataset.json").read_text())["files"]
+    b = json.loads((again / "meta" / "dataset.json").read_text())["files"]
+    assert a == b
+    lost = kitti.frame_path(again, "velodyne", "000001")
+    lost.unlink()
+    kitti.frame_path(again, "image_2", "000002").write_bytes(b"garbage")
+    kept = kitti.frame_path(again, "velodyne", "000003")
+    stamp = kept.stat().st_mtime_ns
+    generate(again, "sotif", frames=4, weathers=["ClearNoon", "HardRainNight"], seed=3, workers=1, progress=False)
+    assert kept.stat().st_mtime_ns == stamp and lost.exists()
+    assert json.loads((again / "meta" / "dataset.json").read_text())["files"] == a
+
+
+def test_training_scenes(tmp_path):
+    out = generate(tmp_path / "t", "train", frames=2, seed=1, progress=False)
+    meta = kitti.read_frames_meta(out / "meta" / "frames.csv")
+    assert set(meta["weather"]) <= {"ClearNoon", "CloudyNoon"} and set(meta["scenario"]) == {"train"}
+    assert meta["lane_change_time_s"].isna().all() and (meta["slow_car_label_index"] == -1).all()
+    assert kitti.read_image_set(out / "ImageSets" / "test.txt") == []
+
+
+def test_split_plans():
+    cfg = GenerateConfig("sotif", 547, tuple(WEATHER_PRESETS), 0, LidarSpec())
+    jobs = plan_jobs(cfg)
+    splits = [j.split for j in jobs]
+    assert splits.count("test") == 492 and splits.count("val") == 55
+    per = np.unique([j.weather for j in jobs], return_counts=True)[1]
+    assert per.min() == 26 and per.max() == 27 and len(per) == 21
+    train = plan_jobs(GenerateConfig("train", 400, ("ClearNoon", "ClearNight"), 0, LidarSpec()))
+    assert [j.split for j in train].count("val") == 60 and len(train) == 400
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"preset": "city"}, "preset"), ({"weathers": ["Sunny"]}, "Sunny"), ({"lidar_model": "ouster"}, "lidar model"),
+    ({"frames": 0}, "frames"), ({"workers": 0}, "workers"), ({"seed": -1}, "seed")])
+def test_invalid_arguments(tmp_path, kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        generate(tmp_path / "x", **{"progress": False, **kwargs})

@@ -1,0 +1,87 @@
+import numpy as np
+from shapely.geometry import box as shapely_box
+
+from harness.kitti import kitti_calib, project_boxes_2d
+from simulator.labels import frame_labels, lidar_boxes, occlusion_level, projected_boxes, truncation, visible_share
+from simulator.lidar import LidarSpec, scan
+from simulator.raycast import STATIC
+from simulator.road import RoadConfig, lane_center, road_to_world
+from simulator.lidar import Pose
+from simulator.vehicles import Vehicle
+from simulator.weather import WEATHER_PRESETS
+
+ROAD = RoadConfig()
+CALIB = kitti_calib()
+
+
+def _pose() -> Pose:
+    x, y, h = road_to_world(ROAD, np.array(150.0), np.array(lane_center(ROAD, 3)))
+    return Pose(float(x), float(y), float(h))
+
+
+def _veh(pose, dx, dy, body="sedan", dims=(4.75, 1.83, 1.45)):
+    c, s = np.cos(pose.yaw), np.sin(pose.yaw)
+    return Vehicle(body, dims, "blue", pose.x + c * dx - s * dy, pose.y + s * dx + c * dy, pose.yaw + 0.05, 25.0)
+
+
+def test_projected_points_of_a_car_fall_in_its_2d_box(highway_scene):
+    pose = _pose()
+    vehicles = [_veh(pose, 18, -3.5), _veh(pose, 35, 2.0, "suv", (4.7, 1.9, 1.72)), _veh(pose, 9, 3.5)]
+    highway_scene.set_vehicles(vehicles)
+    pts = scan(highway_scene, LidarSpec(), pose, WEATHER_PRESETS["ClearNoon"], vehicles, np.random.default_rng(0))
+    labels, rows = frame_labels(highway_scene, vehicles, pose, 1.73, CALIB)
+    dirs = pts[:, :3] / np.linalg.norm(pts[:, :3], axis=1, keepdims=True)
+    actor = highway_scene.cast(np.array([pose.x, pose.y, 1.73]), dirs @ pose.rotation().T).actor
+    uv, depth = CALIB.project_lidar(pts[:, :3])
+    checked = 0
+    for k, row in enumerate(rows):
+        assert row >= 0 and labels.name[row] == "Car"
+        sel = (actor == k) & (depth > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < 1242) & (uv[:, 1] >= 0) & (uv[:, 1] < 375)
+        l, t, r, b = labels.bbox[row]
+        inside = (uv[sel, 0] >= l - 1) & (uv[sel, 0] <= r + 1) & (uv[sel, 1] >= t - 1) & (uv[sel, 1] <= b + 1)
+        assert inside.all()
+        checked += sel.sum()
+    assert checked > 100
+    np.testing.assert_allclose(labels.to_lidar(CALIB)[rows], lidar_boxes(vehicles, pose, 1.73), atol=2e-4)
+
+
+def test_occlusion_rises_behind_a_truck(highway_scene):
+    pose = _pose()
+    car = _veh(pose, 40, 0)
+    truck = _veh(pose, 20, 0, "truck", (11.0, 2.55, 3.8))
+    side_truck = _veh(pose, 20, -1.6, "truck", (11.0, 2.55, 3.8))
+    levels, shares = [], []
+    for vehicles in ([car], [car, side_truck], [car, truck]):
+        highway_scene.set_vehicles(vehicles)
+        labels, rows = frame_labels(highway_scene, vehicles, pose, 1.73, CALIB)
+        bbox = projected_boxes(lidar_boxes(vehicles, pose, 1.73), CALIB)[0][0]
+        shares.append(visible_share(highway_scene, 0, np.clip(bbox, 0, [1241, 374, 1241, 374]), CALIB, pose, 1.73, 12))
+        levels.append(int(labels.occluded[rows[0]]))
+    assert shares[0] > 0.95 and shares[0] > shares[1] > shares[2]
+    assert levels[0] == 0 and levels[0] <= levels[1] <= levels[2] and levels[2] >= 2
+
+
+def test_truncation_matches_shapely():
+    rng = np.random.default_rng(1)
+    lo = rng.uniform(-300, 1300, (200, 2)) * [1, 0.4]
+    raw = np.concatenate([lo, lo + rng.uniform(1, 400, (200, 2))], 1)
+    clipped, share = truncation(raw, 1242, 375)
+    image = shapely_box(0, 0, 1241, 374)
+    for b, s in zip(raw, share):
+        poly = shapely_box(*b)
+        np.testing.assert_allclose(s, 1 - poly.intersection(image).area / poly.area, atol=1e-9)
+
+
+def test_clipped_boxes_match_harness_projection():
+    rng = np.random.default_rng(2)
+    boxes = np.c_[rng.uniform(3, 60, 30), rng.uniform(-15, 15, 30), rng.uniform(-1.5, 0, 30),
+                  rng.uniform(3, 6, 30), rng.uniform(1.5, 2.2, 30), rng.uniform(1.3, 2.0, 30), rng.uniform(-3, 3, 30)]
+    raw, front = projected_boxes(boxes, CALIB)
+    clipped, _ = truncation(raw, 1242, 375)
+    np.testing.assert_allclose(clipped[front], project_boxes_2d(boxes, CALIB)[front], atol=1e-6)
+
+
+def test_occlusion_levels():
+    np.testing.assert_array_equal(occlusion_level(np.array([1.0, 0.75, 0.6, 0.4, 0.2, 0.05, 0.01, 0.0])),
+                                  [0, 0, 1, 1, 2, 2, 3, 3])
+    assert STATIC < 0
