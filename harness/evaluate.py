@@ -13,6 +13,9 @@
   prediction folder has ``rois/``.
 - ``groups`` (with ``--group-by``): ``{"column": C, "rows": {value: {n_frames, n_car, headline,
   headline_ci95 {3d, bev: [lo, hi]}, kitti_moderate {3d, bev} (AP40 @0.7), distance, recall}}}``.
+- ``groups_by``: the same for every requested column (``run`` asks for weather, time of day and
+  precipitation class).
+- ``pr_curve``: interpolated precision and recall at the 41 sample points of the headline 3D AP @0.7.
 - ``n_frames``, ``n_car``, ``frame_ids``.
 """
 from __future__ import annotations
@@ -122,9 +125,11 @@ def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, column: str, n_boo
     return {"column": column, "rows": rows}
 
 
-def evaluate(labels, predictions, split=None, group_by: str | None = None, meta=None,
+def evaluate(labels, predictions, split=None, group_by=None, meta=None,
              n_bootstrap: int = 200, seed: int = 0) -> dict:
-    """Every metric of one prediction folder against one label folder (see module docstring)."""
+    """Every metric of one prediction folder against one label folder (see module docstring).
+
+    ``group_by``: one meta column or a list of them; the first also fills ``groups``."""
     labels, predictions = label_dir(labels), Path(predictions)
     if not predictions.is_dir():
         raise KittiError(predictions, "prediction folder not found")
@@ -137,13 +142,19 @@ def evaluate(labels, predictions, split=None, group_by: str | None = None, meta=
     if (predictions / "rois").is_dir():
         stage_boxes["roi"] = load_folder(predictions / "rois", ids, with_score=True)
     es = build_eval_set(gt, dt)
+    curve = precision_recall(es, "3d", ALL_DISTANCES, 0.7)
     result = {"schema": SCHEMA, "n_frames": len(ids),
               "n_car": int(sum((np.asarray(g.name, dtype=str) == "Car").sum() for g in gt)),
-              "kitti": kitti_ap(es), **_summary(es), "recall": _recalls(gt, stage_boxes), "frame_ids": ids}
-    if group_by:
+              "kitti": kitti_ap(es), **_summary(es), "recall": _recalls(gt, stage_boxes),
+              "pr_curve": {"precision": curve["precision"].tolist(), "recall": curve["recall"].tolist()},
+              "frame_ids": ids}
+    columns = [group_by] if isinstance(group_by, str) else list(group_by or [])
+    if columns:
         if meta is None:
             raise ValueError("--group-by needs --meta meta/frames.csv")
-        result["groups"] = _group_rows(es, gt, stage_boxes, ids, read_frames_meta(meta), group_by, n_bootstrap, seed)
+        table = read_frames_meta(meta)
+        result["groups_by"] = {c: _group_rows(es, gt, stage_boxes, ids, table, c, n_bootstrap, seed) for c in columns}
+        result["groups"] = result["groups_by"][columns[0]]
     return result
 
 

@@ -1,0 +1,95 @@
+"""Runtime figures of one detector: torch eager vs onnxruntime latency and agreement, peak memory.
+
+The peak memory is the high-water mark of resident memory (VmHWM) of a fresh process that loads
+onnxruntime and runs the ONNX file on a few frames: ``python -m harness.runtime ONNX DATA N``.
+"""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from harness.infer import OnnxDetector, _frame_inputs
+from harness.kitti import read_image_set
+
+
+def _frames(data: Path, n: int) -> list[str]:
+    return read_image_set(data / "ImageSets" / "test.txt")[:n]
+
+
+def outputs_agree(a: dict, b: dict, atol: float = 1e-3) -> tuple[bool, float]:
+    """Same boxes (count and values after sorting by score) and the largest score difference."""
+    if a["boxes"].shape != b["boxes"].shape:
+        return False, float("nan")
+    if len(a["scores"]) == 0:
+        return True, 0.0
+    ia, ib = np.argsort(-a["scores"], kind="stable"), np.argsort(-b["scores"], kind="stable")
+    same = np.allclose(a["boxes"][ia], b["boxes"][ib], atol=atol)
+    return bool(same), float(np.abs(a["scores"][ia] - b["scores"][ib]).max())
+
+
+def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
+    """torch eager vs onnxruntime on the same frames: p50 latencies, speed ratio, agreement."""
+    import torch
+    from models.zoo import load_checkpoint
+    model, _ = load_checkpoint(checkpoint)
+    model.eval()
+    det = OnnxDetector(onnx_path)
+    t_torch, t_ort, same, diffs = [], [], [], []
+    for fid in _frames(data, n_frames):
+        points, _, image, l2i, _ = _frame_inputs(det, data, fid)
+        args = [torch.from_numpy(points)]
+        if det.info.uses_camera:
+            args += [torch.from_numpy(image), torch.from_numpy(l2i)]
+        with torch.no_grad():
+            model(*args)  # warm-up
+            t0 = time.perf_counter()
+            out_t = model(*args)
+            t_torch.append(1000 * (time.perf_counter() - t0))
+        det(points, image, l2i)
+        t0 = time.perf_counter()
+        out_o = det(points, image, l2i)
+        t_ort.append(1000 * (time.perf_counter() - t0))
+        torch_out = {"boxes": out_t[0].numpy(), "scores": out_t[1].numpy()}
+        ok, d = outputs_agree(torch_out, out_o)
+        same.append(ok)
+        if not np.isnan(d):
+            diffs.append(d)
+    p50_t, p50_o = float(np.median(t_torch)), float(np.median(t_ort))
+    return {"torch_eager_ms_p50": p50_t, "ort_ms_p50_same_frames": p50_o, "ort_speedup": p50_t / p50_o,
+            "agreement": {"same_boxes": float(np.mean(same)), "max_abs_score_diff": max(diffs) if diffs else None,
+                          "frames": len(same)},
+            "peak_memory_mb": peak_memory_mb(onnx_path, data, min(n_frames, 5))}
+
+
+def peak_memory_mb(onnx_path: Path, data: Path, n_frames: int = 5) -> float | None:
+    proc = subprocess.run([sys.executable, "-m", "harness.runtime", str(onnx_path), str(data), str(n_frames)],
+                          capture_output=True, text=True, timeout=600)
+    if proc.returncode != 0:
+        return None
+    return json.loads(proc.stdout.strip().splitlines()[-1])["peak_memory_mb"]
+
+
+def _vm_hwm_mb() -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def _main(argv) -> None:
+    onnx_path, data, n = Path(argv[0]), Path(argv[1]), int(argv[2])
+    det = OnnxDetector(onnx_path)
+    for fid in _frames(data, n):
+        points, _, image, l2i, _ = _frame_inputs(det, data, fid)
+        det(points, image, l2i)
+    print(json.dumps({"peak_memory_mb": _vm_hwm_mb()}))
+
+
+if __name__ == "__main__":
+    _main(sys.argv[1:])
