@@ -160,9 +160,13 @@ class OnnxDetector:
             except ImportError:
                 raise ValueError("--runtime openvino needs the optional extra: pip install 'sotif-bench[openvino]'") from None
             compiled = ov.Core().compile_model(str(path), "CPU")
-            self.output_names = [o.get_any_name() for o in compiled.outputs]
-            self._run = lambda feeds: {k: np.asarray(v) for k, v in
-                                       zip(self.output_names, compiled(feeds).values())}
+            # an output tensor can carry several names in OpenVINO: keep the graph's output order
+            self.output_names = list(self.info.outputs)
+
+            def run_openvino(feeds):
+                res = compiled(feeds)
+                return {k: np.asarray(res[compiled.outputs[i]]) for i, k in enumerate(self.output_names)}
+            self._run = run_openvino
         else:
             raise ValueError(f"unknown runtime {runtime!r}; expected onnxruntime or openvino")
 

@@ -55,3 +55,13 @@ def test_predict_writes_kitti_results_and_resumes(make_onnx, tmp_path, dataset):
     (out / "000003.txt").unlink()
     again = predict(onnx_path, dataset, out, progress=False)
     assert again["n_timed"] == 1  # only the missing frame ran
+
+
+def test_openvino_runtime_agrees_with_onnxruntime(make_onnx, tmp_path):
+    pytest.importorskip("openvino")
+    path = make_onnx(tmp_path / "c.onnx", two_stage=True)
+    pts = np.random.default_rng(1).normal(size=(300, 4)).astype(np.float32)
+    a, b = OnnxDetector(path)(pts), OnnxDetector(path, runtime="openvino")(pts)
+    assert list(a) == list(b) == ["boxes", "scores", "rois", "roi_scores"]
+    for k in a:
+        np.testing.assert_allclose(a[k], b[k], rtol=1e-5, atol=1e-6)
