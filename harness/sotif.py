@@ -1,0 +1,222 @@
+"""SOTIF view: when does each detector first find the slow car in the ego lane after the cut-out?
+
+The SOTIF scenario (simulator.scenario): a fast car ahead of the ego changes lane and reveals a
+slow car in the ego lane. Per weather preset, this module finds the first test frame at or after
+the lane change in which a detector finds the slow car, and compares the distance at that moment
+with the distance the ego needs to brake to the slow car's speed:
+
+    d_stop = dv * T_REACT_S + dv^2 / (2 * DECEL_MPS2) + MARGIN_M,  dv = ego speed - slow car speed
+
+A frame counts as a detection when a predicted box with score >= the model's operating threshold
+has BEV IoU >= ``IOU_BEV_MIN`` with the slow car's ground-truth box (row ``slow_car_label_index``
+of the frame's label_2 file). The operating threshold is the F1-optimal score threshold at BEV
+IoU 0.5 over all Car boxes of the "val" split (``FALLBACK_THRESHOLD`` when val is empty or has no
+prediction files). Distances are from the LiDAR to the slow car's rear face (BEV range of the box
+centre minus half its length), metres. Pure functions first, then the driver ``sotif_view``.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from harness.boxes import iou_bev
+from harness.kitti import KittiError, Labels, frame_path, read_calib, read_frames_meta, read_image_set, read_labels
+
+T_REACT_S = 1.0  # s, driver/system reaction time before braking starts
+DECEL_MPS2 = 4.0  # m/s^2, comfortable-to-firm braking deceleration
+MARGIN_M = 2.0  # m, gap left after braking
+IOU_BEV_MIN = 0.5
+FALLBACK_THRESHOLD = 0.3
+META_COLUMNS = ("frame_id", "weather", "scenario_time_s", "lane_change_time_s", "slow_car_label_index",
+                "ego_speed_mps", "slow_car_speed_mps")
+
+
+# ----------------------------------------------------------------------------- pure functions
+def stopping_distance(closing_speed_mps: float, t_react: float = T_REACT_S, decel: float = DECEL_MPS2,
+                      margin: float = MARGIN_M) -> float:
+    """Distance (m) the ego needs to match the slow car's speed; a non-closing ego needs only the margin."""
+    dv = max(float(closing_speed_mps), 0.0)
+    return dv * t_react + dv * dv / (2.0 * decel) + margin
+
+
+def greedy_match(boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, iou_min: float = IOU_BEV_MIN) -> np.ndarray:
+    """(D,) bool: detection i (LiDAR box (D, 7)) matched a ground-truth box (G, 7) at BEV IoU >= iou_min.
+
+    Detections are taken by descending score; each takes its best still-free ground truth. Since
+    higher scores go first, keeping only detections above any threshold leaves their matches unchanged.
+    """
+    matched = np.zeros(len(boxes), dtype=bool)
+    if len(boxes) == 0 or len(gt) == 0:
+        return matched
+    iou = iou_bev(boxes, gt)  # (D, G)
+    free = np.ones(len(gt), dtype=bool)
+    for i in np.argsort(-np.asarray(scores), kind="stable"):
+        cand = np.where(free, iou[i], -1.0)
+        j = int(np.argmax(cand))
+        if cand[j] >= iou_min:
+            matched[i], free[j] = True, False
+    return matched
+
+
+def f1_optimal_threshold(scores: np.ndarray, matched: np.ndarray, n_gt: int) -> tuple[float | None, float]:
+    """(threshold, F1) maximising F1 over score thresholds; ties go to the higher threshold.
+
+    ``scores``/``matched`` are the detections of all frames (matched by ``greedy_match``); a
+    detection is kept when its score >= threshold. Returns (None, 0.0) when no threshold has F1 > 0.
+    """
+    scores, matched = np.asarray(scores, dtype=np.float64), np.asarray(matched, dtype=bool)
+    if n_gt <= 0 or scores.size == 0:
+        return None, 0.0
+    order = np.argsort(-scores, kind="stable")
+    s, tp = scores[order], np.cumsum(matched[order])  # (D,) detections kept down to position i
+    last = np.r_[s[1:] != s[:-1], True]  # only the last of equal scores is a valid cut
+    n_kept = np.arange(1, len(s) + 1)
+    f1 = 2.0 * tp / (n_kept + n_gt)  # 2TP / (2TP + FP + FN) with TP + FP = kept, TP + FN = n_gt
+    f1 = np.where(last, f1, -1.0)
+    best = int(np.argmax(f1))  # first maximum = highest threshold among ties
+    if f1[best] <= 0:
+        return None, 0.0
+    return float(s[best]), float(f1[best])
+
+
+def first_hit(hits) -> int | None:
+    """Index of the first True in ``hits`` (frames in time order), or None."""
+    idx = np.flatnonzero(np.asarray(hits, dtype=bool))
+    return int(idx[0]) if idx.size else None
+
+
+def slow_car_detected(pred_boxes: np.ndarray, pred_scores: np.ndarray, slow_box: np.ndarray, threshold: float,
+                      iou_min: float = IOU_BEV_MIN) -> bool:
+    """Some prediction with score >= threshold overlaps the slow car's box (7,) at BEV IoU >= iou_min."""
+    keep = np.asarray(pred_scores) >= threshold
+    if not keep.any():
+        return False
+    return bool((iou_bev(np.asarray(pred_boxes)[keep], np.asarray(slow_box).reshape(1, 7))[:, 0] >= iou_min).any())
+
+
+def rear_distance(box: np.ndarray) -> float:
+    """Metres from the LiDAR to the rear face of a box ahead: BEV range of its centre minus l / 2."""
+    return float(math.hypot(box[0], box[1]) - box[3] / 2.0)
+
+
+# ----------------------------------------------------------------------------- loaders
+def _split_ids(data_dir: Path, split: str) -> list[str]:
+    path = data_dir / "ImageSets" / f"{split}.txt"
+    return read_image_set(path) if path.is_file() else []
+
+
+def _lidar_labels(data_dir: Path, folder: Path, fid: str, with_score: bool) -> tuple[np.ndarray, np.ndarray, Labels]:
+    """(K, 7) LiDAR boxes, (K,) scores (ones for ground truth) and the labels of one label/result file."""
+    labels = read_labels(folder / f"{fid}.txt", with_score=with_score or None)
+    calib = read_calib(frame_path(data_dir, "calib", fid))
+    boxes = labels.to_lidar(calib) if len(labels) else np.zeros((0, 7), np.float32)
+    scores = labels.score if labels.score is not None else np.ones(len(labels))
+    return boxes, scores, labels
+
+
+def load_meta(data_dir) -> pd.DataFrame:
+    """The data set's meta/frames.csv with the SOTIF columns checked (ValueError naming the file)."""
+    path = Path(data_dir) / "meta" / "frames.csv"
+    meta = read_frames_meta(path)
+    missing = [c for c in META_COLUMNS if c not in meta.columns]
+    if missing:
+        raise KittiError(path, f"no SOTIF scenario columns {', '.join(missing)} (needed for the SOTIF view)")
+    return meta
+
+
+def operating_threshold(data_dir, predictions_dir, split: str = "val") -> tuple[float, str]:
+    """(threshold, source): the F1-optimal score threshold at BEV IoU 0.5 on ``split``, or the fallback."""
+    data_dir, predictions_dir = Path(data_dir), Path(predictions_dir)
+    ids = _split_ids(data_dir, split)
+    present = [fid for fid in ids if (predictions_dir / f"{fid}.txt").is_file()]
+    if not present:
+        return FALLBACK_THRESHOLD, f"fallback ({split} split empty or not predicted)"
+    if len(present) != len(ids):
+        missing = next(fid for fid in ids if fid not in set(present))
+        raise KittiError(predictions_dir / f"{missing}.txt", f"file not found ({len(ids) - len(present)} of the "
+                                                           f"{len(ids)} {split} frames lack predictions)")
+    scores, matched, n_gt = [], [], 0
+    label_dir = frame_path(data_dir, "label_2", "0").parent
+    for fid in ids:
+        gt, _, gt_labels = _lidar_labels(data_dir, label_dir, fid, with_score=False)
+        gt = gt[np.asarray(gt_labels.name, dtype=str) == "Car"] if len(gt) else gt
+        boxes, s, _ = _lidar_labels(data_dir, predictions_dir, fid, with_score=True)
+        scores.append(s)
+        matched.append(greedy_match(boxes, s, gt))
+        n_gt += len(gt)
+    thr, f1 = f1_optimal_threshold(np.concatenate(scores), np.concatenate(matched), n_gt)
+    if thr is None:
+        return FALLBACK_THRESHOLD, f"fallback (no detection matches a car on {split})"
+    return thr, f"F1-optimal on {split} (F1 {f1:.3f})"
+
+
+# ----------------------------------------------------------------------------- driver
+def _weather_row(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, threshold: float) -> dict:
+    """First detection of the slow car after the lane change in one weather's frames (time order)."""
+    t_lc = float(frames["lane_change_time_s"].iloc[0]) if len(frames) else float("nan")
+    after = frames[(frames["scenario_time_s"] >= t_lc - 1e-6) & (frames["slow_car_label_index"] >= 0)]
+    row = {"lane_change_time_s": None if math.isnan(t_lc) else t_lc, "n_frames_after_lane_change": int(len(after)),
+           "detected": False, "frame_id": None, "distance_m": None, "time_after_lane_change_s": None,
+           "closing_speed_mps": None, "stopping_distance_m": None, "pass": None}
+    if math.isnan(t_lc) or after.empty:
+        return row
+    label_dir = frame_path(data_dir, "label_2", "0").parent
+    hits, slow_boxes = [], []
+    for fr in after.itertuples(index=False):
+        gt, _, _ = _lidar_labels(data_dir, label_dir, fr.frame_id, with_score=False)
+        k = int(fr.slow_car_label_index)
+        if k >= len(gt):
+            raise KittiError(label_dir / f"{fr.frame_id}.txt", f"slow_car_label_index {k} but only {len(gt)} objects")
+        boxes, scores, _ = _lidar_labels(data_dir, predictions_dir, fr.frame_id, with_score=True)
+        hits.append(slow_car_detected(boxes, scores, gt[k], threshold))
+        slow_boxes.append(gt[k])
+    i = first_hit(hits)
+    at = after.iloc[0 if i is None else i]
+    dv = float(at["ego_speed_mps"] - at["slow_car_speed_mps"])
+    row.update(closing_speed_mps=dv, stopping_distance_m=stopping_distance(dv))
+    if i is None:
+        row["pass"] = False
+        return row
+    dist = rear_distance(slow_boxes[i])
+    row.update(detected=True, frame_id=str(at["frame_id"]), distance_m=dist,
+               time_after_lane_change_s=float(at["scenario_time_s"]) - t_lc)
+    row["pass"] = bool(dist >= row["stopping_distance_m"])
+    return row
+
+
+def sotif_view(data_dir, predictions_dir, split: str = "test", threshold: float | None = None,
+               val_predictions_dir=None) -> dict:
+    """Per weather preset: first detection of the slow car after the lane change vs the stopping distance.
+
+    ``{weather: {threshold, threshold_source, lane_change_time_s, n_frames_after_lane_change, detected,
+    frame_id, distance_m, time_after_lane_change_s, closing_speed_mps, stopping_distance_m, pass}}``.
+    ``stopping_distance_m`` uses the closing speed at the detection frame (at the first frame after
+    the lane change when never detected, then ``pass`` is False); ``pass`` is None without a lane change.
+    ``val_predictions_dir`` (default ``predictions_dir``) holds the val split's result files.
+    """
+    data_dir, predictions_dir = Path(data_dir), Path(predictions_dir)
+    if not predictions_dir.is_dir():
+        raise KittiError(predictions_dir, "prediction folder not found")
+    meta = load_meta(data_dir)
+    if threshold is None:
+        threshold, source = operating_threshold(data_dir, val_predictions_dir or predictions_dir)
+    else:
+        source = "given"
+    ids = _split_ids(data_dir, split)
+    if not ids:
+        raise KittiError(data_dir / "ImageSets" / f"{split}.txt", "no frames in the split")
+    frames = meta[meta["frame_id"].isin(set(ids))].sort_values("scenario_time_s", kind="stable")
+    out = {}
+    for weather in pd.unique(frames["weather"]):
+        row = _weather_row(data_dir, predictions_dir, frames[frames["weather"] == weather], threshold)
+        out[str(weather)] = {"threshold": float(threshold), "threshold_source": source, **row}
+    return out
+
+
+def constants() -> dict:
+    """The documented constants, for reports."""
+    return {"t_react_s": T_REACT_S, "decel_mps2": DECEL_MPS2, "margin_m": MARGIN_M, "iou_bev_min": IOU_BEV_MIN,
+            "fallback_threshold": FALLBACK_THRESHOLD}
