@@ -1,0 +1,342 @@
+"""The tables of a benchmark run, built from its result files (pandas; CSV + JSON + Markdown).
+
+Loader (``load_run``), pure functions from the loaded result dicts to DataFrames, and one driver
+(``write_tables``) writing ``RUN/tables/<name>.{csv,json,md}``. AP values are in percent, recalls
+are converted to percent, latencies in ms, sizes in MB. Rows follow the order in which the
+evaluation met the groups (the data set's weather order).
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from harness.kitti import KittiError, atomic_write_text, read_frames_meta
+
+RUN_SCHEMA = "sotif-bench/run/1"
+CLEAN_PRESETS = ("ClearNoon", "ClearSunset")
+CORRUPT_CLASSES = ("rain", "wet")  # precipitation classes whose presets enter the mRR
+DIFFS = ("easy", "moderate", "hard")
+DISTANCE_BINS = ("0-30", "30-50", "50-80")
+
+
+@dataclass
+class Run:
+    """A run directory's result files, loaded."""
+
+    run_dir: Path
+    summary: dict  # results.json
+    results: dict  # model name -> results/<name>.json
+    meta: pd.DataFrame | None  # data/sotif/meta/frames.csv
+    frame_stats: pd.DataFrame | None  # tables/data_stats.csv (per frame)
+
+    @property
+    def models(self) -> list[str]:
+        return list(self.summary["models"])
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise KittiError(path, "file not found") from None
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise KittiError(path, f"not valid JSON ({e})") from None
+    if not isinstance(data, dict):
+        raise KittiError(path, "expected a JSON object")
+    return data
+
+
+def _check_summary(path: Path, summary: dict) -> None:
+    if summary.get("schema") != RUN_SCHEMA:
+        raise KittiError(path, f"schema is {summary.get('schema')!r}, expected {RUN_SCHEMA!r}")
+    models = summary.get("models")
+    if not isinstance(models, dict) or not models:
+        raise KittiError(path, "no models in the run summary")
+    for name, m in models.items():
+        if not isinstance(m, dict) or "results" not in m:
+            raise KittiError(path, f"model {name!r} has no 'results' entry")
+
+
+def load_run(run_dir) -> Run:
+    """Load results.json, every model's results file, the data meta and the per-frame data statistics."""
+    run_dir = Path(run_dir)
+    path = run_dir / "results.json"
+    summary = _read_json(path)
+    _check_summary(path, summary)
+    results = {}
+    for name, m in summary["models"].items():
+        res_path = run_dir / m["results"]
+        res = _read_json(res_path)
+        for key in ("kitti", "headline", "distance", "recall"):
+            if key not in res:
+                raise KittiError(res_path, f"no {key!r} entry (not a harness.evaluate results file)")
+        results[name] = res
+    meta_path, stats_path = run_dir / "data" / "sotif" / "meta" / "frames.csv", run_dir / "tables" / "data_stats.csv"
+    meta = read_frames_meta(meta_path) if meta_path.is_file() else None
+    stats = read_frames_meta(stats_path) if stats_path.is_file() else None
+    return Run(run_dir, summary, results, meta, stats)
+
+
+# ----------------------------------------------------------------------------- paper tables
+def kitti_ap_table(results: dict) -> pd.DataFrame:
+    """The paper's AP table: per model, metric (bbox/BEV/3D/AOS) and AP11/AP40 at IoU 0.7."""
+    rows = []
+    for name, res in results.items():
+        for metric in ("bbox", "bev", "3d", "aos"):
+            if metric not in res["kitti"]:
+                continue
+            for kind in ("R11", "R40"):
+                v = res["kitti"][metric]["0.7"][kind]
+                rows.append({"model": name, "metric": metric, "ap": f"AP{kind[1:]}", **{d: v[d] for d in DIFFS}})
+    return pd.DataFrame(rows, columns=["model", "metric", "ap", *DIFFS])
+
+
+def recall_table(results: dict) -> pd.DataFrame:
+    """The paper's recall table (percent) for two-stage models: RoI and RCNN at IoU 0.3 / 0.5 / 0.7."""
+    rows = []
+    for name, res in results.items():
+        rec = res["recall"]
+        if "roi" not in rec:
+            continue
+        rows.append({"model": name, **{f"{stage}@{t}": 100.0 * rec[stage][t]
+                                       for stage in ("roi", "rcnn") for t in ("0.3", "0.5", "0.7")}})
+    return pd.DataFrame(rows, columns=["model", *[f"{s}@{t}" for s in ("roi", "rcnn") for t in ("0.3", "0.5", "0.7")]])
+
+
+# ----------------------------------------------------------------------------- per group
+def group_rows(res: dict, column: str) -> dict:
+    """``{value: row}`` of one results file grouped by ``column`` (empty when not evaluated)."""
+    by = res.get("groups_by", {})
+    if column in by:
+        return by[column]["rows"]
+    g = res.get("groups")
+    return g["rows"] if g and g.get("column") == column else {}
+
+
+def _group_record(row: dict) -> dict:
+    lo, hi = row["headline_ci95"]["3d"]
+    rec = row["recall"].get("rcnn", {})
+    return {"n_frames": row["n_frames"], "n_car": row["n_car"], "ap3d": row["headline"]["3d"]["0.7"],
+            "ap3d_lo": lo, "ap3d_hi": hi, "ap_bev": row["headline"]["bev"]["0.7"],
+            "ap3d_0.5": row["headline"]["3d"]["0.5"],
+            "kitti_mod_3d": row["kitti_moderate"]["3d"], "kitti_mod_bev": row["kitti_moderate"]["bev"],
+            **{f"ap3d_{b}m": row["distance"]["3d"]["0.7"][b] for b in DISTANCE_BINS},
+            "recall@0.5": 100.0 * rec.get("0.5", np.nan), "recall@0.7": 100.0 * rec.get("0.7", np.nan)}
+
+
+def group_table(results: dict, column: str = "weather") -> pd.DataFrame:
+    """Long table: one row per (group value, model) with headline AP40 3D @0.7 and its 95% CI,
+    BEV, KITTI moderate, distance bins and RCNN recall."""
+    rows = [{column: value, "model": name, **_group_record(row)}
+            for name, res in results.items() for value, row in group_rows(res, column).items()]
+    if not rows:
+        return pd.DataFrame(columns=[column, "model"])
+    df = pd.DataFrame(rows)
+    order = list(dict.fromkeys(df[column]))
+    df[column] = pd.Categorical(df[column], categories=order, ordered=True)
+    return df.sort_values([column], kind="stable").astype({column: str}).reset_index(drop=True)
+
+
+def headline_matrix(long: pd.DataFrame, column: str = "weather", value: str = "ap3d") -> pd.DataFrame:
+    """Wide ``column`` x model matrix of one value of ``group_table`` (group order kept)."""
+    if long.empty:
+        return pd.DataFrame()
+    order = list(dict.fromkeys(long[column]))
+    models = list(dict.fromkeys(long["model"]))
+    return long.pivot(index=column, columns="model", values=value).reindex(index=order, columns=models)
+
+
+def headline_with_ci(long: pd.DataFrame, column: str = "weather") -> pd.DataFrame:
+    """The main table: per group value, each model's headline AP and its 95% interval."""
+    if long.empty:
+        return pd.DataFrame(columns=[column])
+    out = pd.DataFrame({column: list(dict.fromkeys(long[column]))})
+    for name in dict.fromkeys(long["model"]):
+        sub = long[long["model"] == name].set_index(column)
+        for key, suffix in (("ap3d", ""), ("ap3d_lo", " lo"), ("ap3d_hi", " hi")):
+            out[f"{name}{suffix}"] = out[column].map(sub[key])
+    return out
+
+
+# ----------------------------------------------------------------------------- robustness
+def corrupt_presets(weathers, meta: pd.DataFrame | None) -> list[str]:
+    """Rain/wet presets: by the meta's precipitation_class, else by name ("Rain", "Wet")."""
+    if meta is not None and {"weather", "precipitation_class"} <= set(meta.columns):
+        cls = meta.drop_duplicates("weather").set_index("weather")["precipitation_class"]
+        return [w for w in weathers if cls.get(w) in CORRUPT_CLASSES]
+    return [w for w in weathers if "Rain" in w or "Wet" in w]
+
+
+def relative_ap(matrix: pd.DataFrame, clean=CLEAN_PRESETS) -> tuple[pd.Series, pd.DataFrame]:
+    """(clean AP per model, AP / clean AP per weather and model); NaN where the clean AP is 0 or absent."""
+    present = [w for w in clean if w in matrix.index]
+    clean_ap = matrix.loc[present].mean(axis=0) if present else pd.Series(np.nan, index=matrix.columns)
+    return clean_ap, matrix.div(clean_ap.where(clean_ap > 0), axis=1)
+
+
+def robustness_table(matrix: pd.DataFrame, meta: pd.DataFrame | None = None) -> pd.DataFrame:
+    """Per model: clean AP (mean of ClearNoon/ClearSunset), Robo3D-style mRR over the rain/wet presets
+    (mean of AP_w / AP_clean), the worst preset and its relative AP."""
+    cols = ["model", "clean_ap3d", "mRR", "n_corrupt_presets", "worst_preset", "worst_rel"]
+    if matrix.empty:
+        return pd.DataFrame(columns=cols)
+    clean_ap, rel = relative_ap(matrix)
+    corrupt = corrupt_presets(list(matrix.index), meta)
+    rows = []
+    for name in matrix.columns:
+        r = rel[name].dropna()
+        rows.append({"model": name, "clean_ap3d": clean_ap[name],
+                     "mRR": float(rel.loc[corrupt, name].mean()) if corrupt else np.nan,
+                     "n_corrupt_presets": len(corrupt), "worst_preset": r.idxmin() if len(r) else None,
+                     "worst_rel": float(r.min()) if len(r) else np.nan})
+    return pd.DataFrame(rows, columns=cols)
+
+
+def relative_table(matrix: pd.DataFrame) -> pd.DataFrame:
+    """Per weather x model: headline AP relative to the model's clean AP (1.0 = as in clear weather)."""
+    if matrix.empty:
+        return pd.DataFrame()
+    return relative_ap(matrix)[1].rename_axis("weather").reset_index()
+
+
+# ----------------------------------------------------------------------------- SOTIF, runtime, data
+def sotif_table(summary: dict) -> pd.DataFrame:
+    """Long table: per (weather, model) the first detection of the slow car vs the stopping distance."""
+    rows = []
+    for name, m in summary["models"].items():
+        for weather, r in (m.get("sotif") or {}).items():
+            verdict = "n/a" if r.get("pass") is None else ("pass" if r["pass"] else "FAIL")
+            rows.append({"weather": weather, "model": name, "threshold": r.get("threshold"),
+                         "detected": r.get("detected"), "distance_m": r.get("distance_m"),
+                         "time_after_lane_change_s": r.get("time_after_lane_change_s"),
+                         "stopping_distance_m": r.get("stopping_distance_m"), "verdict": verdict})
+    cols = ["weather", "model", "threshold", "detected", "distance_m", "time_after_lane_change_s",
+            "stopping_distance_m", "verdict"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def sotif_matrix(long: pd.DataFrame) -> pd.DataFrame:
+    """Weather x model: "pass 52.1 m / 0.5 s", "FAIL 12.0 m", "FAIL never" or "n/a"."""
+    if long.empty:
+        return pd.DataFrame()
+
+    def cell(r) -> str:
+        if r["verdict"] == "n/a":
+            return "n/a"
+        if not r["detected"]:
+            return f"{r['verdict']} never"
+        return f"{r['verdict']} {r['distance_m']:.1f} m / {r['time_after_lane_change_s']:.1f} s"
+    wide = long.assign(cell=long.apply(cell, axis=1)).pivot(index="weather", columns="model", values="cell")
+    wide = wide.reindex(index=list(dict.fromkeys(long["weather"])), columns=list(dict.fromkeys(long["model"])))
+    need = long.groupby("weather", sort=False)["stopping_distance_m"].max()
+    wide.insert(0, "stopping_distance_m", need.reindex(wide.index))
+    return wide.rename_axis("weather").reset_index()
+
+
+def _get(d: dict, *keys, default=np.nan):
+    for k in keys:
+        if not isinstance(d, dict) or d.get(k) is None:
+            return default
+        d = d[k]
+    return d
+
+
+def runtime_table(summary: dict) -> pd.DataFrame:
+    """Per model: ORT latency p50/p90, frames/s, size, parameters, peak memory, torch-vs-ORT agreement,
+    and OpenVINO latency/agreement when the run has them."""
+    rows = []
+    for name, m in summary["models"].items():
+        rt = m.get("runtime", {})
+        row = {"model": name, "architecture": m.get("architecture"), "two_stage": m.get("two_stage"),
+               "ort_p50_ms": _get(rt, "onnxruntime", "latency_ms_p50"), "ort_p90_ms": _get(rt, "onnxruntime", "latency_ms_p90"),
+               "fps": _get(rt, "onnxruntime", "fps"), "size_mb": _get(m, "size_mb"), "params_m": _get(m, "params") / 1e6,
+               "peak_memory_mb": _get(rt, "peak_memory_mb"), "torch_p50_ms": _get(rt, "torch_eager_ms_p50"),
+               "ort_speedup": _get(rt, "ort_speedup"), "same_boxes": _get(rt, "agreement", "same_boxes"),
+               "max_score_diff": _get(rt, "agreement", "max_abs_score_diff"), "train_s": _get(m, "train", "seconds")}
+        if isinstance(rt.get("openvino"), dict):
+            ov = rt["openvino"]
+            row.update(ov_p50_ms=_get(ov, "latency_ms_p50"), ov_same_boxes=_get(ov, "agreement", "same_boxes"),
+                       ov_error=ov.get("error"))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def data_table(meta: pd.DataFrame | None, frame_stats: pd.DataFrame | None) -> pd.DataFrame:
+    """Per weather: frames per split, points per frame (mean/min/max) and LiDAR range statistics."""
+    if meta is None or "weather" not in meta.columns:
+        return pd.DataFrame()
+    df = meta.copy()
+    if frame_stats is not None:
+        extra = [c for c in frame_stats.columns if c not in df.columns or c == "frame_id"]
+        df = df.merge(frame_stats[extra], on="frame_id", how="left")
+    g = df.groupby("weather", sort=False)
+    out = pd.DataFrame({"n_frames": g.size()})
+    if "split" in df.columns:
+        for split in ("test", "val"):
+            out[f"n_{split}"] = g["split"].apply(lambda s, sp=split: int((s == sp).sum()))
+    for col, stats in (("n_points", ("mean", "min", "max")), ("mean_range_m", ("mean",)), ("max_range_m", ("mean",)),
+                       ("ground_share", ("mean",)), ("rain_rate_mmh", ("first",)), ("fog_density", ("first",))):
+        if col in df.columns:
+            for s in stats:
+                out[f"{col}_{s}" if s != "first" else col] = g[col].agg(s)
+    return out.rename_axis("weather").reset_index()
+
+
+def stage_table(summary: dict) -> pd.DataFrame:
+    """Wall time per pipeline stage (seconds), as recorded by the run."""
+    st = summary.get("stage_seconds") or {}
+    return pd.DataFrame([{"stage": k, "seconds": v} for k, v in st.items()], columns=["stage", "seconds"])
+
+
+# ----------------------------------------------------------------------------- output
+def _cell(v, digits: int) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "–"
+    if isinstance(v, (bool, np.bool_)):
+        return "yes" if v else "no"
+    if isinstance(v, (float, np.floating)):
+        return f"{v:.{digits}f}"
+    return str(v).replace("|", "\\|")
+
+
+def to_markdown(df: pd.DataFrame, digits: int = 2) -> str:
+    """A GitHub Markdown table (floats with ``digits`` decimals, missing values as a dash)."""
+    if df.empty:
+        return "_(no data)_\n"
+    head = "| " + " | ".join(map(str, df.columns)) + " |"
+    sep = "|" + "|".join("---" if df[c].dtype == object else "---:" for c in df.columns) + "|"
+    body = ["| " + " | ".join(_cell(v, digits) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join([head, sep, *body]) + "\n"
+
+
+def build_tables(run: Run) -> dict[str, pd.DataFrame]:
+    """Every table of the report, by name (empty DataFrames for parts the run does not have)."""
+    weather = group_table(run.results, "weather")
+    matrix = headline_matrix(weather)
+    sotif = sotif_table(run.summary)
+    return {
+        "kitti_ap": kitti_ap_table(run.results), "recall": recall_table(run.results),
+        "weather_headline": headline_with_ci(weather), "weather_detail": weather,
+        "robustness": robustness_table(matrix, run.meta), "relative_ap": relative_table(matrix),
+        "time_of_day": group_table(run.results, "time_of_day"),
+        "precipitation_class": group_table(run.results, "precipitation_class"),
+        "sotif": sotif, "sotif_matrix": sotif_matrix(sotif), "runtime": runtime_table(run.summary),
+        "data_by_weather": data_table(run.meta, run.frame_stats), "stages": stage_table(run.summary),
+    }
+
+
+def write_tables(run_dir, run: Run | None = None) -> dict[str, pd.DataFrame]:
+    """Write every table as ``RUN/tables/<name>.csv``, ``.json`` (records) and ``.md``; returns them."""
+    run = run or load_run(run_dir)
+    out = Path(run_dir) / "tables"
+    tables = build_tables(run)
+    for name, df in tables.items():
+        atomic_write_text(out / f"{name}.csv", df.to_csv(index=False, lineterminator="\n"))
+        atomic_write_text(out / f"{name}.json", df.to_json(orient="records", indent=1) + "\n")
+        atomic_write_text(out / f"{name}.md", to_markdown(df))
+    return tables

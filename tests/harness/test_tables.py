@@ -1,0 +1,177 @@
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness import tables
+from harness.kitti import KittiError
+
+WEATHERS = ["ClearNoon", "WetNoon", "HardRainNoon", "ClearSunset", "CloudyNight", "SoftRainNight"]
+BINS = ("0-30", "30-50", "50-80")
+
+
+def _kitti(rng):
+    return {m: {"0.7": {k: {d: float(rng.uniform(0, 100)) for d in ("easy", "moderate", "hard")} for k in ("R11", "R40")}}
+            for m in ("bbox", "bev", "3d", "aos")}
+
+
+def _row(rng, n):
+    ap = float(rng.uniform(5, 90))
+    return {"n_frames": n, "n_car": 2 * n, "headline": {"3d": {"0.7": ap, "0.5": ap + 5}, "bev": {"0.7": ap + 3, "0.5": ap + 6}},
+            "headline_ci95": {"3d": [ap - 4, ap + 4], "bev": [ap - 1, ap + 7]},
+            "kitti_moderate": {"3d": ap / 2, "bev": ap / 3},
+            "distance": {"3d": {"0.7": {b: float(rng.uniform(0, 100)) for b in BINS}}},
+            "recall": {"rcnn": {"0.3": 0.9, "0.5": 0.8, "0.7": float(rng.uniform(0, 1))}}}
+
+
+def fake_result(rng, two_stage=False):
+    rows = {w: _row(rng, 3) for w in WEATHERS}
+    tod = {t: _row(rng, 6) for t in ("Noon", "Sunset", "Night")}
+    res = {"kitti": _kitti(rng), "headline": {"3d": {"0.7": 50.0}}, "distance": {},
+           "recall": {"rcnn": {"0.3": 0.9, "0.5": 0.7, "0.7": 0.4}},
+           "groups": {"column": "weather", "rows": rows},
+           "groups_by": {"weather": {"column": "weather", "rows": rows}, "time_of_day": {"column": "time_of_day", "rows": tod}}}
+    if two_stage:
+        res["recall"]["roi"] = {"0.3": 0.95, "0.5": 0.6, "0.7": 0.2}
+    return res
+
+
+def test_kitti_and_recall_tables():
+    rng = np.random.default_rng(0)
+    results = {"one": fake_result(rng), "two": fake_result(rng, two_stage=True)}
+    ap = tables.kitti_ap_table(results)
+    assert len(ap) == 2 * 4 * 2
+    row = ap[(ap.model == "two") & (ap.metric == "bev") & (ap.ap == "AP40")].iloc[0]
+    assert row["moderate"] == results["two"]["kitti"]["bev"]["0.7"]["R40"]["moderate"]
+    rec = tables.recall_table(results)
+    assert rec["model"].tolist() == ["two"]
+    assert rec.iloc[0]["roi@0.5"] == pytest.approx(60.0) and rec.iloc[0]["rcnn@0.3"] == pytest.approx(90.0)
+
+
+def test_group_table_and_matrix_keep_weather_order():
+    rng = np.random.default_rng(1)
+    results = {"a": fake_result(rng), "b": fake_result(rng)}
+    long = tables.group_table(results, "weather")
+    assert len(long) == 2 * len(WEATHERS)
+    m = tables.headline_matrix(long)
+    assert list(m.index) == WEATHERS and list(m.columns) == ["a", "b"]
+    for w in WEATHERS:
+        for name in ("a", "b"):
+            r = results[name]["groups_by"]["weather"]["rows"][w]
+            assert m.loc[w, name] == r["headline"]["3d"]["0.7"]
+            rec = long[(long.weather == w) & (long.model == name)].iloc[0]
+            assert rec["ap3d_lo"] == r["headline_ci95"]["3d"][0]
+            assert rec["ap3d_30-50m"] == r["distance"]["3d"]["0.7"]["30-50"]
+            assert rec["recall@0.7"] == pytest.approx(100 * r["recall"]["rcnn"]["0.7"])
+    wide = tables.headline_with_ci(long)
+    assert wide.loc[wide.weather == "WetNoon", "b hi"].item() == results["b"]["groups"]["rows"]["WetNoon"]["headline_ci95"]["3d"][1]
+    assert tables.group_table(results, "precipitation_class").empty
+
+
+def test_robustness_against_plain_python():
+    rng = np.random.default_rng(2)
+    for _ in range(20):
+        aps = {name: {w: float(rng.uniform(0, 100)) for w in WEATHERS} for name in ("a", "b", "c")}
+        aps["c"]["ClearNoon"] = aps["c"]["ClearSunset"] = 0.0  # no clean AP: relative values undefined
+        matrix = pd.DataFrame(aps).loc[WEATHERS]
+        rob = tables.robustness_table(matrix).set_index("model")
+        corrupt = ["WetNoon", "HardRainNoon", "SoftRainNight"]
+        for name in ("a", "b"):
+            clean = (aps[name]["ClearNoon"] + aps[name]["ClearSunset"]) / 2
+            assert rob.loc[name, "clean_ap3d"] == pytest.approx(clean)
+            assert rob.loc[name, "mRR"] == pytest.approx(sum(aps[name][w] / clean for w in corrupt) / 3)
+            worst = min(WEATHERS, key=lambda w: aps[name][w])
+            assert rob.loc[name, "worst_preset"] == worst
+        assert np.isnan(rob.loc["c", "mRR"])
+
+
+def test_corrupt_presets_follow_meta():
+    meta = pd.DataFrame({"weather": ["ClearNoon", "WetNoon", "CloudyNight"], "precipitation_class": ["dry", "dry", "rain"]})
+    assert tables.corrupt_presets(["ClearNoon", "WetNoon", "CloudyNight"], meta) == ["CloudyNight"]
+    assert tables.corrupt_presets(["ClearNoon", "WetNoon", "MidRainyNoon"], None) == ["WetNoon", "MidRainyNoon"]
+
+
+def _summary(sotif=True, openvino=False):
+    m = {"architecture": "x", "two_stage": False, "size_mb": 2.5, "params": 1_500_000, "results": "results/a.json",
+         "train": {"seconds": 10.0},
+         "runtime": {"onnxruntime": {"latency_ms_p50": 12.0, "latency_ms_p90": 15.0, "fps": 80.0},
+                     "torch_eager_ms_p50": 30.0, "ort_speedup": 2.5, "peak_memory_mb": 300.0,
+                     "agreement": {"same_boxes": 1.0, "max_abs_score_diff": 1e-6}}}
+    if openvino:
+        m["runtime"]["openvino"] = {"latency_ms_p50": 9.0, "agreement": {"same_boxes": 0.5}}
+    if sotif:
+        m["sotif"] = {"ClearNoon": {"threshold": 0.4, "detected": True, "distance_m": 52.13, "time_after_lane_change_s": 0.5,
+                                    "stopping_distance_m": 19.0, "pass": True},
+                      "HardRainNight": {"threshold": 0.4, "detected": False, "distance_m": None,
+                                        "time_after_lane_change_s": None, "stopping_distance_m": 19.0, "pass": False},
+                      "WetNoon": {"threshold": 0.4, "detected": False, "pass": None}}
+    return {"schema": tables.RUN_SCHEMA, "models": {"a": m}}
+
+
+def test_sotif_and_runtime_tables():
+    s = _summary(openvino=True)
+    long = tables.sotif_table(s)
+    assert long["verdict"].tolist() == ["pass", "FAIL", "n/a"]
+    wide = tables.sotif_matrix(long).set_index("weather")
+    assert wide.loc["ClearNoon", "a"] == "pass 52.1 m / 0.5 s" and wide.loc["HardRainNight", "a"] == "FAIL never"
+    assert wide.loc["WetNoon", "a"] == "n/a"
+    rt = tables.runtime_table(s).iloc[0]
+    assert rt["ort_p50_ms"] == 12.0 and rt["params_m"] == pytest.approx(1.5) and rt["ov_p50_ms"] == 9.0
+    plain = tables.runtime_table(_summary(sotif=False))
+    assert "ov_p50_ms" not in plain.columns and tables.sotif_table(_summary(sotif=False)).empty
+
+
+def test_data_table_against_plain_aggregation():
+    rng = np.random.default_rng(4)
+    n = 40
+    meta = pd.DataFrame({"frame_id": [f"{i:06d}" for i in range(n)], "weather": rng.choice(WEATHERS[:3], n),
+                         "split": rng.choice(["test", "val"], n), "n_points": rng.integers(100, 1000, n)})
+    stats = meta[["frame_id", "split", "weather"]].assign(mean_range_m=rng.uniform(10, 40, n))
+    df = tables.data_table(meta, stats).set_index("weather")
+    for w in set(meta.weather):
+        sub = meta[meta.weather == w]
+        assert df.loc[w, "n_frames"] == len(sub) and df.loc[w, "n_val"] == (sub.split == "val").sum()
+        assert df.loc[w, "n_points_max"] == sub.n_points.max()
+        assert df.loc[w, "n_points_mean"] == pytest.approx(sub.n_points.mean())
+        assert df.loc[w, "mean_range_m_mean"] == pytest.approx(stats[stats.weather == w].mean_range_m.mean())
+    assert tables.data_table(None, None).empty
+
+
+def test_markdown_cells():
+    df = pd.DataFrame({"name": ["a|b", "c"], "v": [1.23456, np.nan], "ok": [True, False]})
+    md = tables.to_markdown(df, digits=1).splitlines()
+    assert md[0] == "| name | v | ok |" and md[2] == "| a\\|b | 1.2 | yes |" and md[3] == "| c | – | no |"
+    assert tables.to_markdown(pd.DataFrame()) == "_(no data)_\n"
+
+
+def test_load_run_errors_name_the_file(tmp_path):
+    with pytest.raises(KittiError, match="results.json: file not found"):
+        tables.load_run(tmp_path)
+    (tmp_path / "results.json").write_text("{not json")
+    with pytest.raises(KittiError, match="results.json: not valid JSON"):
+        tables.load_run(tmp_path)
+    (tmp_path / "results.json").write_text(json.dumps({"schema": "other"}))
+    with pytest.raises(KittiError, match="schema"):
+        tables.load_run(tmp_path)
+    (tmp_path / "results.json").write_text(json.dumps(_summary()))
+    with pytest.raises(KittiError, match=r"results[/\\]a.json: file not found"):
+        tables.load_run(tmp_path)
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "a.json").write_text(json.dumps({"kitti": {}}))
+    with pytest.raises(KittiError, match="a.json: no 'headline'"):
+        tables.load_run(tmp_path)
+
+
+def test_write_tables_writes_three_formats(tmp_path):
+    rng = np.random.default_rng(5)
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "a.json").write_text(json.dumps(fake_result(rng)))
+    (tmp_path / "results.json").write_text(json.dumps(_summary()))
+    out = tables.write_tables(tmp_path)
+    for name in ("kitti_ap", "weather_headline", "robustness", "sotif", "runtime"):
+        csv = pd.read_csv(tmp_path / "tables" / f"{name}.csv")
+        assert len(csv) == len(out[name])
+        assert len(json.loads((tmp_path / "tables" / f"{name}.json").read_text())) == len(out[name])
+        assert (tmp_path / "tables" / f"{name}.md").read_text().startswith("|")
+    assert not list((tmp_path / "tables").glob(".*.tmp"))
