@@ -101,8 +101,7 @@ def shade(hits, dirs_w: np.ndarray, cam_w: np.ndarray, ego_fwd: np.ndarray, p: W
         refl = dirs_w[road] - 2 * np.sum(dirs_w[road] * hits.normal[road], 1, keepdims=True) * hits.normal[road]
         fres = effects.fresnel_reflectance(np.abs(np.sum(dirs_w[road] * hits.normal[road], 1)))[:, None]
         col[road] = col[road] * (1 - 0.45 * cover) + cover * np.clip(fres * 1.5, 0, 1) * sky_colour(refl, p, phase)
-    sky = sky_colour(dirs_w, p, phase)
-    col = np.where(hit[:, None], col, sky)
+    col[~hit] = sky_colour(dirs_w[~hit], p, phase)
     beta = 0.0015 + 3 * fog_extinction(p) + 0.001 * rain_rate_mmh(p) ** 0.6
     haze = np.exp(-beta * np.where(hit, t, 1e4))[:, None]
     horizon = sky_colour(np.tile([[1.0, 0.0, 0.02]], (1, 1)), p, phase)[0]

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
@@ -46,6 +47,26 @@ def first_hit_distance(triangles: np.ndarray, origins: np.ndarray, dirs: np.ndar
     return np.where(res["primID"] >= 0, res["tfar"].astype(np.float64), np.inf)
 
 
+@numba.njit(cache=True)
+def rays_near_spheres(origin: np.ndarray, dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(N,) bool: the ray from `origin` along unit dirs (N, 3) passes within a sphere (K, 3), (K,)."""
+    n, k = dirs.shape[0], centres.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        for j in range(k):
+            cx = centres[j, 0] - origin[0]
+            cy = centres[j, 1] - origin[1]
+            cz = centres[j, 2] - origin[2]
+            along = cx * dirs[i, 0] + cy * dirs[i, 1] + cz * dirs[i, 2]
+            if along < -radii[j]:
+                continue
+            perp2 = cx * cx + cy * cy + cz * cz - along * along
+            if perp2 <= radii[j] * radii[j]:
+                out[i] = True
+                break
+    return out
+
+
 class RayScene:
     """Static world + per-frame vehicles."""
 
@@ -66,6 +87,9 @@ class RayScene:
             mats.append(m)
             actors.append(np.full(len(t), i))
         self.vehicle_triangles = tris
+        self._spheres = (np.array([t.reshape(-1, 3).mean(0) for t in tris]).reshape(-1, 3),
+                         np.array([np.linalg.norm(t.reshape(-1, 3) - t.reshape(-1, 3).mean(0), axis=1).max() + 0.01
+                                   for t in tris]))
         if not tris:
             self._dynamic = None
             return
@@ -73,24 +97,32 @@ class RayScene:
         self._dyn_material = np.concatenate(mats)
         self._dyn_actor = np.concatenate(actors)
 
+    def _candidates(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """Rays that may hit a vehicle (bounding spheres); all rays when origins differ."""
+        if origin.ndim != 1:
+            return np.ones(len(dirs), bool)
+        return rays_near_spheres(origin.astype(np.float64), dirs.astype(np.float64, copy=False), *self._spheres)
+
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> Hits:
         """First hits of rays (origins (N, 3) or (3,), unit dirs (N, 3)), world frame."""
-        origins = np.broadcast_to(np.asarray(origins, dtype=np.float32), dirs.shape)
+        origin = np.asarray(origins, dtype=np.float64)
+        origins = np.broadcast_to(origin.astype(np.float32), dirs.shape)
         st = _run(self._static, origins, dirs)
         t = np.where(st["primID"] >= 0, st["tfar"], np.inf).astype(np.float64)
-        ng = st["Ng"]
+        ng = st["Ng"].copy()
         prim = st["primID"]
         material = np.where(prim >= 0, self.world.material[np.maximum(prim, 0)], 0).astype(np.int64)
         actor = np.where(prim >= 0, STATIC, MISS)
         if self._dynamic is not None:
-            dy = _run(self._dynamic, origins, dirs)
+            near = np.flatnonzero(self._candidates(origin, dirs))
+            dy = _run(self._dynamic, origins[near], dirs[near])
             td = np.where(dy["primID"] >= 0, dy["tfar"], np.inf)
-            nearer = td < t
-            t = np.where(nearer, td, t)
-            ng = np.where(nearer[:, None], dy["Ng"], ng)
-            p = np.maximum(dy["primID"], 0)
-            material = np.where(nearer, self._dyn_material[p], material)
-            actor = np.where(nearer, self._dyn_actor[p], actor)
+            nearer = td < t[near]
+            idx, p = near[nearer], dy["primID"][nearer]
+            t[idx] = td[nearer]
+            ng[idx] = dy["Ng"][nearer]
+            material[idx] = self._dyn_material[p]
+            actor[idx] = self._dyn_actor[p]
         n = ng / np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-12)
         flip = np.sum(n * dirs, axis=1) > 0
         n[flip] *= -1

@@ -85,3 +85,18 @@ def test_occlusion_levels():
     np.testing.assert_array_equal(occlusion_level(np.array([1.0, 0.75, 0.6, 0.4, 0.2, 0.05, 0.01, 0.0])),
                                   [0, 0, 1, 1, 2, 2, 3, 3])
     assert STATIC < 0
+
+
+def test_sphere_culling_matches_brute_force():
+    from simulator.raycast import rays_near_spheres
+
+    rng = np.random.default_rng(3)
+    d = rng.normal(size=(3000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = rng.normal(size=3)
+    c, r = rng.uniform(-10, 10, (7, 3)), rng.uniform(0.5, 3, 7)
+    rel = c - o  # (K, 3)
+    along = d @ rel.T  # (N, K)
+    perp2 = (rel ** 2).sum(1)[None] - along ** 2
+    ref = ((along >= -r) & (perp2 <= r ** 2)).any(1)
+    np.testing.assert_array_equal(rays_near_spheres(o, d, c, r), ref)
