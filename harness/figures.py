@@ -1,0 +1,215 @@
+"""The report's figures (matplotlib, Agg canvas, PNG bytes), drawn from a run's result files.
+
+Each ``*_figure`` function builds a ``matplotlib.figure.Figure`` from plain data (testable: the
+data it shows can be read back from the artists); ``png`` turns it into deterministic PNG bytes.
+``bev_frames`` loads the scans, labels and predictions shown in the bird's-eye-view grid.
+"""
+from __future__ import annotations
+
+import io
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+
+from harness.boxes import corners_bev
+from harness.kitti import frame_path, read_calib, read_image_set, read_labels, read_points
+
+DPI = 90
+MODEL_COLOURS = ("#d62728", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
+GT_COLOUR = "#2ca02c"
+BEV_RANGE = ((-5.0, 85.0), (-20.0, 20.0))  # (x, y) metres shown in the bird's-eye views
+MAX_BEV_POINTS = 30000
+DEFAULT_THRESHOLD = 0.3
+
+
+def png(fig: Figure) -> bytes:
+    """PNG bytes of a figure (no timestamp metadata, so equal figures give equal bytes)."""
+    FigureCanvasAgg(fig)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
+    return buf.getvalue()
+
+
+def colour(i: int) -> str:
+    return MODEL_COLOURS[i % len(MODEL_COLOURS)]
+
+
+# ----------------------------------------------------------------------------- result figures
+def heatmap_figure(matrix: pd.DataFrame, title: str, label: str = "AP40 3D @0.7 (%)", vmax: float = 100.0) -> Figure:
+    """Rows x columns heat map (rows = weather presets, columns = models) with the values written in."""
+    values = matrix.to_numpy(dtype=float)  # (W, M)
+    fig = Figure(figsize=(2.0 + 1.3 * values.shape[1], 1.2 + 0.32 * values.shape[0]), layout="constrained")
+    ax = fig.add_subplot()
+    im = ax.imshow(np.ma.masked_invalid(values), cmap="viridis", vmin=0.0, vmax=vmax, aspect="auto")
+    ax.set_xticks(range(values.shape[1]), [str(c) for c in matrix.columns], rotation=30, ha="right")
+    ax.set_yticks(range(values.shape[0]), [str(i) for i in matrix.index])
+    for (r, c), v in np.ndenumerate(values):
+        text = "–" if math.isnan(v) else f"{v:.1f}"
+        ax.text(c, r, text, ha="center", va="center", fontsize=8,
+                color="white" if math.isnan(v) or v < 0.6 * vmax else "black")
+    fig.colorbar(im, ax=ax, label=label, shrink=0.8)
+    ax.set_title(title)
+    return fig
+
+
+def scatter_figure(points: pd.DataFrame, x: str, y: str, xlabel: str, ylabel: str, title: str) -> Figure:
+    """One labelled point per model (rows of ``points`` with columns model, x, y); log x axis."""
+    fig = Figure(figsize=(6.5, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    for i, r in enumerate(points.itertuples(index=False)):
+        xv, yv = getattr(r, x), getattr(r, y)
+        if xv is None or yv is None or not (np.isfinite(xv) and np.isfinite(yv)):
+            continue
+        ax.scatter([xv], [yv], color=colour(i), s=60, zorder=3)
+        ax.annotate(str(r.model), (xv, yv), textcoords="offset points", xytext=(6, 4), fontsize=9)
+    if len(points) and (points[x].dropna() > 0).all() and points[x].notna().any():
+        ax.set_xscale("log")
+    ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
+    ax.grid(True, alpha=0.3)
+    return fig
+
+
+def pr_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], title: str) -> Figure:
+    """Precision over recall per model (``{model: (recall, precision)}``, KITTI's 41 sample points)."""
+    fig = Figure(figsize=(6.5, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    for i, (name, (rec, prec)) in enumerate(curves.items()):
+        rec, prec = np.asarray(rec, dtype=float), np.asarray(prec, dtype=float)
+        keep = rec > 0  # unused sample points are zero-filled
+        ax.plot(rec[keep], prec[keep], color=colour(i), label=name, marker=".", lw=1.5)
+    ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.02), ylim=(0, 1.02), title=title)
+    ax.grid(True, alpha=0.3)
+    if curves:
+        ax.legend(fontsize=8)
+    return fig
+
+
+def distance_figure(ap: pd.DataFrame, title: str) -> Figure:
+    """AP per distance bin (columns) per model (rows), one line per model."""
+    fig = Figure(figsize=(6.5, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    xs = np.arange(ap.shape[1])
+    for i, (name, row) in enumerate(ap.iterrows()):
+        ax.plot(xs, row.to_numpy(dtype=float), color=colour(i), marker="o", label=str(name))
+    ax.set_xticks(xs, [f"{c} m" for c in ap.columns])
+    ax.set(xlabel="ground-truth distance", ylabel="AP40 3D @0.7 (%)", ylim=(0, 100), title=title)
+    ax.grid(True, alpha=0.3)
+    if len(ap):
+        ax.legend(fontsize=8)
+    return fig
+
+
+def data_figure(stats: pd.DataFrame) -> Figure:
+    """Per weather preset: mean points per frame (bars) and mean / max LiDAR range (lines)."""
+    fig = Figure(figsize=(11, 4.2), layout="constrained")
+    ax = fig.add_subplot()
+    xs = np.arange(len(stats))
+    ax.bar(xs, stats["n_points_mean"], color="#7f7f7f", label="points per frame (mean)")
+    ax.set_ylabel("points per frame")
+    ax.set_xticks(xs, stats["weather"], rotation=45, ha="right", fontsize=8)
+    ranges = [c for c in ("mean_range_m_mean", "max_range_m_mean") if c in stats.columns]
+    if ranges:
+        ax2 = ax.twinx()
+        for c, style in zip(ranges, ("o-", "s--")):
+            ax2.plot(xs, stats[c], style, color="#1f77b4", label=c.replace("_mean", "").replace("_", " "))
+        ax2.set_ylabel("range (m)")
+        ax2.legend(loc="upper right", fontsize=8)
+    ax.legend(loc="upper left", fontsize=8)
+    ax.set_title("SOTIF data per weather preset")
+    return fig
+
+
+# ----------------------------------------------------------------------------- bird's-eye views
+@dataclass
+class BevFrame:
+    """What one bird's-eye-view panel shows (LiDAR frame)."""
+
+    title: str
+    points: np.ndarray  # (N, 4)
+    gt: np.ndarray  # (G, 7) Car boxes
+    detections: dict = field(default_factory=dict)  # model -> (D, 7) boxes above the operating threshold
+
+
+def _outline(box: np.ndarray) -> np.ndarray:
+    """(5, 2) closed BEV outline of one box."""
+    c = corners_bev(box.reshape(1, 7))[0]
+    return np.vstack([c, c[:1]])
+
+
+def _bev_axes(ax, frame: BevFrame, models: list[str]) -> None:
+    pts = frame.points
+    ax.scatter(pts[:, 0], pts[:, 1], s=0.05, c="#555555", rasterized=True, linewidths=0)
+    for b in frame.gt:
+        o = _outline(b)
+        ax.plot(o[:, 0], o[:, 1], color=GT_COLOUR, lw=1.8, gid="gt")
+    for i, name in enumerate(models):
+        for b in frame.detections.get(name, np.zeros((0, 7))):
+            o = _outline(b)
+            ax.plot(o[:, 0], o[:, 1], color=colour(i), lw=0.9, ls="--", gid=f"det:{name}")
+    (x0, x1), (y0, y1) = BEV_RANGE
+    ax.set(xlim=(x0, x1), ylim=(y0, y1), aspect="equal")
+    ax.set_title(frame.title, fontsize=8)
+    ax.tick_params(labelsize=6)
+
+
+def bev_figure(frames: list[BevFrame], models: list[str], ncols: int = 3) -> Figure:
+    """A grid of bird's-eye views (x forward to the right, y left up): points, GT (green), detections."""
+    nrows = max(1, math.ceil(len(frames) / ncols))
+    fig = Figure(figsize=(5.0 * ncols, 2.5 * nrows + 0.6), layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
+    for ax, frame in zip(axes, frames):
+        _bev_axes(ax, frame, models)
+    for ax in axes[len(frames):]:
+        ax.set_axis_off()
+    handles = [Line2D([], [], color=GT_COLOUR, lw=1.8, label="ground truth")]
+    handles += [Line2D([], [], color=colour(i), ls="--", label=m) for i, m in enumerate(models)]
+    fig.legend(handles=handles, loc="outside upper center", ncols=len(handles), fontsize=9)
+    return fig
+
+
+def pick_frames(meta: pd.DataFrame, ids) -> dict[str, str]:
+    """One test frame per weather: the first at or after the lane change with the slow car labelled,
+    else the middle frame of that weather (``{weather: frame_id}``, data set order)."""
+    frames = meta[meta["frame_id"].isin(set(ids))]
+    out = {}
+    for weather, sub in frames.groupby("weather", sort=False):
+        if {"scenario_time_s", "lane_change_time_s", "slow_car_label_index"} <= set(sub.columns):
+            after = sub[(sub["scenario_time_s"] >= sub["lane_change_time_s"] - 1e-6) & (sub["slow_car_label_index"] >= 0)]
+            if len(after):
+                out[str(weather)] = str(after.sort_values("scenario_time_s", kind="stable")["frame_id"].iloc[0])
+                continue
+        out[str(weather)] = str(sub["frame_id"].iloc[len(sub) // 2])
+    return out
+
+
+def _boxes(path: Path, calib, with_score: bool, threshold: float = 0.0) -> np.ndarray:
+    if not path.is_file():
+        return np.zeros((0, 7), np.float32)
+    labels = read_labels(path, with_score=with_score or None)
+    labels = labels.select(np.asarray(labels.name, dtype=str) == "Car")
+    if with_score and len(labels):
+        labels = labels.select(labels.score >= threshold)
+    return labels.to_lidar(calib) if len(labels) else np.zeros((0, 7), np.float32)
+
+
+def bev_frames(run_dir, meta: pd.DataFrame, thresholds: dict[str, float], seed: int = 0) -> list[BevFrame]:
+    """Panels for one test frame per weather: scan (subsampled), GT cars and each model's detections
+    with score >= its threshold (``thresholds``: model -> score, models in legend order)."""
+    data = Path(run_dir) / "data" / "sotif"
+    ids = read_image_set(data / "ImageSets" / "test.txt")
+    out = []
+    for weather, fid in pick_frames(meta, ids).items():
+        calib = read_calib(frame_path(data, "calib", fid))
+        pts = read_points(frame_path(data, "velodyne", fid))
+        if len(pts) > MAX_BEV_POINTS:
+            pts = pts[np.random.default_rng([seed, int(fid)]).choice(len(pts), MAX_BEV_POINTS, replace=False)]
+        dets = {name: _boxes(Path(run_dir) / "predictions" / name / f"{fid}.txt", calib, True, thr)
+                for name, thr in thresholds.items()}
+        out.append(BevFrame(f"{weather} (frame {fid})", pts, _boxes(frame_path(data, "label_2", fid), calib, False), dets))
+    return out

@@ -1,0 +1,116 @@
+import io
+
+import numpy as np
+import pandas as pd
+import pytest
+from PIL import Image
+
+from harness import figures, kitti
+from harness.kitti import Labels
+
+
+def _png_size(data: bytes) -> tuple[int, int]:
+    with Image.open(io.BytesIO(data)) as im:
+        assert im.format == "PNG"
+        return im.size
+
+
+def _rect(box):
+    """Reference BEV corners of one box by the rotation formula, as a set of rounded points."""
+    x, y, _, l, w, _, yaw = box
+    c, s = np.cos(yaw), np.sin(yaw)
+    pts = [(x + dx * c - dy * s, y + dx * s + dy * c) for dx, dy in ((l / 2, w / 2), (-l / 2, w / 2), (-l / 2, -w / 2), (l / 2, -w / 2))]
+    return {(round(a, 4), round(b, 4)) for a, b in pts}
+
+
+def test_heatmap_shows_the_matrix_and_is_deterministic():
+    rng = np.random.default_rng(0)
+    m = pd.DataFrame(rng.uniform(0, 100, (5, 3)), index=[f"w{i}" for i in range(5)], columns=["a", "b", "c"])
+    m.iloc[2, 1] = np.nan
+    fig = figures.heatmap_figure(m, "t")
+    shown = fig.axes[0].images[0].get_array()
+    assert shown.mask[2, 1] and np.allclose(shown.filled(-1)[~shown.mask], m.to_numpy()[~np.isnan(m.to_numpy())])
+    assert [t.get_text() for t in fig.axes[0].get_yticklabels()] == list(m.index)
+    texts = [t.get_text() for t in fig.axes[0].texts]
+    assert texts[0] == f"{m.iloc[0, 0]:.1f}" and texts[2 * 3 + 1] == "–"
+    a, b = figures.png(figures.heatmap_figure(m, "t")), figures.png(figures.heatmap_figure(m, "t"))
+    assert a == b and _png_size(a)[0] > 100
+
+
+def test_pr_distance_scatter_plot_their_data():
+    rng = np.random.default_rng(1)
+    rec = np.r_[np.sort(rng.uniform(0.01, 1, 30)), np.zeros(11)]
+    prec = rng.uniform(0, 1, 41)
+    fig = figures.pr_figure({"a": (rec, prec)}, "pr")
+    x, y = fig.axes[0].lines[0].get_data()
+    assert np.allclose(x, rec[:30]) and np.allclose(y, prec[:30])
+    ap = pd.DataFrame(rng.uniform(0, 100, (2, 3)), index=["a", "b"], columns=["0-30", "30-50", "50-80"])
+    lines = figures.distance_figure(ap, "d").axes[0].lines
+    assert np.allclose(lines[1].get_ydata(), ap.loc["b"])
+    pts = pd.DataFrame({"model": ["a", "b", "c"], "lat": [10.0, 100.0, np.nan], "ap": [30.0, 60.0, 1.0]})
+    ax = figures.scatter_figure(pts, "lat", "ap", "ms", "AP", "s").axes[0]
+    offsets = np.vstack([c.get_offsets() for c in ax.collections])
+    assert np.allclose(offsets, [[10, 30], [100, 60]]) and ax.get_xscale() == "log"
+    _png_size(figures.png(figures.pr_figure({}, "empty")))
+
+
+def test_data_figure_bars():
+    stats = pd.DataFrame({"weather": ["A", "B"], "n_points_mean": [1000.0, 500.0], "mean_range_m_mean": [20.0, 15.0]})
+    fig = figures.data_figure(stats)
+    assert [p.get_height() for p in fig.axes[0].patches] == [1000.0, 500.0]
+    assert np.allclose(fig.axes[1].lines[0].get_ydata(), [20.0, 15.0])
+
+
+def test_bev_figure_draws_boxes_where_they_are():
+    rng = np.random.default_rng(2)
+    gt = np.c_[rng.uniform(5, 60, (3, 2)), np.zeros(3), rng.uniform(3, 5, 3), rng.uniform(1.5, 2, 3), np.ones(3),
+               rng.uniform(-np.pi, np.pi, 3)]
+    det = gt[:2] + [0.3, 0, 0, 0, 0, 0, 0]
+    frame = figures.BevFrame("w", rng.uniform(0, 50, (100, 4)).astype(np.float32), gt, {"a": det, "b": np.zeros((0, 7))})
+    fig = figures.bev_figure([frame], ["a", "b"], ncols=2)
+    ax = fig.axes[0]
+    gt_lines = [ln for ln in ax.lines if ln.get_gid() == "gt"]
+    assert len(gt_lines) == 3 and len([ln for ln in ax.lines if ln.get_gid() == "det:a"]) == 2
+    for ln, box in zip(gt_lines, gt):
+        xy = np.c_[ln.get_data()]
+        assert np.allclose(xy[0], xy[-1]) and {(round(a, 4), round(b, 4)) for a, b in xy[:4]} == _rect(box)
+    assert not fig.axes[1].axison  # the unused panel is blank
+
+
+def test_pick_frames():
+    meta = pd.DataFrame({"frame_id": ["000000", "000001", "000002", "000003", "000004", "000005"],
+                         "weather": ["A", "A", "A", "B", "B", "B"], "scenario_time_s": [0, 1, 2, 0, 1, 2],
+                         "lane_change_time_s": [1.0, 1.0, 1.0, 9.0, 9.0, 9.0], "slow_car_label_index": [0, -1, 0, 0, 0, 0]})
+    assert figures.pick_frames(meta, meta.frame_id) == {"A": "000002", "B": "000004"}
+    assert figures.pick_frames(meta[["frame_id", "weather"]], ["000000", "000001", "000003"]) == {"A": "000001", "B": "000003"}
+
+
+def test_bev_frames_reads_scans_labels_and_thresholded_predictions(tmp_path):
+    data = tmp_path / "data" / "sotif"
+    calib = kitti.kitti_calib()
+    gt = np.array([[30.0, 0.5, -0.9, 4.5, 1.8, 1.5, 0.1], [50.0, -3.0, -0.9, 4.0, 1.7, 1.5, 0.0]], np.float32)
+    pts = np.random.default_rng(3).uniform(0, 50, (40000, 4)).astype(np.float32)
+    rows = []
+    for i, w in enumerate(["A", "B"]):
+        fid = f"{i:06d}"
+        kitti.write_points(kitti.frame_path(data, "velodyne", fid), pts)
+        kitti.write_calib(kitti.frame_path(data, "calib", fid), calib)
+        kitti.write_labels(kitti.frame_path(data, "label_2", fid), Labels.from_lidar(gt, calib, ["Car", "Van"]))
+        kitti.write_labels(tmp_path / "predictions" / "m" / f"{fid}.txt",
+                           Labels.from_lidar(gt, calib, ["Car", "Car"], score=[0.9, 0.2]))
+        rows.append({"frame_id": fid, "weather": w})
+    kitti.write_image_set(data / "ImageSets" / "test.txt", ["000000", "000001"])
+    frames = figures.bev_frames(tmp_path, pd.DataFrame(rows), {"m": 0.5, "missing": 0.5})
+    assert [f.title for f in frames] == ["A (frame 000000)", "B (frame 000001)"]
+    f = frames[0]
+    assert len(f.points) == figures.MAX_BEV_POINTS and f.gt.shape == (1, 7)  # the Van is not drawn
+    np.testing.assert_allclose(f.gt[0], gt[0], atol=1e-3)
+    assert f.detections["m"].shape == (1, 7) and f.detections["missing"].shape == (0, 7)
+    np.testing.assert_allclose(f.detections["m"][0], gt[0], atol=1e-3)
+    assert _png_size(figures.png(figures.bev_figure(frames, ["m", "missing"])))[1] > 100
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_bev_figure_handles_few_frames(n):
+    frame = figures.BevFrame("w", np.zeros((0, 4), np.float32), np.zeros((0, 7)))
+    _png_size(figures.png(figures.bev_figure([frame] * n, [])))
