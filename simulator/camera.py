@@ -15,6 +15,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from simulator import effects
+from simulator.lidar import rotate_yaw
 from simulator.materials import ALBEDO, EMISSION, ROAD
 from simulator.raycast import RayScene
 from simulator.weather import WeatherPreset, fog_extinction, rain_rate_mmh, road_water_cover, time_of_day
@@ -131,7 +132,7 @@ def render(scene: RayScene, lidar2img: np.ndarray, pose, mount_height: float, p:
     centre, dirs = _rays_cached(key, spec.width, spec.height, spec.downsample)
     h, w = dirs.shape[:2]
     rot = pose.rotation()
-    dirs_w = dirs.reshape(-1, 3) @ rot.T
+    dirs_w = rotate_yaw(dirs.reshape(-1, 3), pose.yaw)
     cam_w = rot @ centre + np.array([pose.x, pose.y, mount_height])
     hits = scene.cast(cam_w, dirs_w)
     phase = rng.uniform(0, 2 * np.pi, 6)

@@ -92,3 +92,34 @@ def test_carla_mode_ignores_weather(highway_scene):
     np.testing.assert_allclose(scans[0][:, 3], np.exp(-0.004 * d), rtol=1e-5)
     physics = scan(highway_scene, LidarSpec(), pose, WEATHER_PRESETS["ClearNoon"], vehicles, np.random.default_rng(3))
     assert 0.4 < len(scans[0]) / len(physics) < 0.75  # CARLA drops ~45 % at random plus weak returns
+
+
+def test_fused_hard_returns_match_effect_formulas():
+    from simulator import effects
+    from simulator.lidar import hard_returns
+    from simulator.materials import GROUND, REFLECTIVITY
+
+    rng = np.random.default_rng(5)
+    n = 5000
+    t = np.where(rng.random(n) < 0.1, np.inf, rng.uniform(0.2, 140, n))
+    dirs = rng.normal(size=(n, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    normal = rng.normal(size=(n, 3))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal *= -np.sign(np.sum(normal * dirs, 1))[:, None]
+    mat = rng.choice([0, 1, 4, 9, 33, 40], n)
+    noise = rng.standard_normal(n)
+    cover, a_rain, a_fog, fog_start, p_min, k = 0.6, 0.003, 0.002, 5.0, 1.4e-6, 0.015
+    r_out, i_out = hard_returns(t, normal, dirs, mat, REFLECTIVITY.astype(float), GROUND, cover, a_rain, a_fog,
+                                fog_start, p_min, 1.0, 120.0, 0.02, k, noise)
+    cos_i = np.clip(-np.sum(normal * dirs, 1), 1e-3, 1)
+    rho = REFLECTIVITY[mat].astype(float)
+    rho = np.where(GROUND[mat], effects.wet_reflectivity(rho, cos_i, cover), rho)
+    tf = np.where(np.isfinite(t), t, 1e9)
+    t2 = effects.two_way_transmission(tf, a_rain, a_fog, fog_start)
+    ok = (tf >= 1) & (tf <= 120) & (effects.received_power(rho, cos_i, tf, t2) >= p_min)
+    np.testing.assert_array_equal(np.isfinite(r_out), ok)
+    np.testing.assert_allclose(r_out[ok], (tf + noise * np.hypot(0.02, k * tf))[ok], rtol=1e-12)
+    ref_i = np.clip(rho * cos_i * t2 * np.exp(-0.004 * tf), 0, 1)
+    np.testing.assert_allclose(i_out[ok], ref_i[ok], rtol=1e-12)
+    assert 0.3 < ok.mean() < 0.95

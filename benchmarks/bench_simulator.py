@@ -1,0 +1,104 @@
+"""Simulator speed: LiDAR rays/s (with weather) against raw Embree on the same scene,
+frames/s of the full frame pipeline, and the time to generate the SOTIF set on 2 workers.
+
+    python benchmarks/bench_simulator.py [--repeats 10] [--frames 20] [--skip-full] [--workers 2]
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+from embreex import rtcore_scene as rtcs
+from embreex.mesh_construction import TriangleMesh
+
+from simulator import generate
+from simulator.dataset import GenerateConfig, _run_job, plan_jobs
+from simulator.lidar import LidarSpec, ray_directions, scan
+from simulator.raycast import RayScene
+from simulator.road import RoadConfig
+from simulator.scenario import sotif_run
+from simulator.weather import WEATHER_PRESETS
+from simulator.world import build_world
+
+
+def _median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def bench_rays(repeats: int, weather: str) -> None:
+    road = RoadConfig()
+    scene = RayScene(build_world(road, np.random.default_rng(0)))
+    state = sotif_run(road, 27, np.random.default_rng(0))[10]
+    scene.set_vehicles(state.vehicles)
+    spec = LidarSpec()
+    dirs = ray_directions(spec) @ state.pose.rotation().T
+    n = len(dirs)
+    merged = rtcs.EmbreeScene()  # one BVH over the world and the vehicles: the raw reference
+    TriangleMesh(merged, np.concatenate([scene.world.triangles] + [t.astype(np.float32) for t in scene.vehicle_triangles]))
+    origins = np.tile(np.array([state.pose.x, state.pose.y, spec.mount_height], np.float32), (n, 1))
+    dirs32 = np.ascontiguousarray(dirs, dtype=np.float32)
+    merged.run(origins, dirs32, output=1)
+    t_raw = _median_time(lambda: merged.run(origins, dirs32, output=1), repeats)
+    rng = np.random.default_rng(1)
+    w = WEATHER_PRESETS[weather]
+    scan(scene, spec, state.pose, w, state.vehicles, rng)
+    t_lidar = _median_time(lambda: scan(scene, spec, state.pose, w, state.vehicles, rng), repeats)
+    print(f"rays per scan: {n} ({len(spec.elevations_deg)} channels x {spec.n_azimuth} azimuths)")
+    print(f"raw embreex (one merged BVH, first hit + normals): {n / t_raw / 1e6:.2f} M rays/s ({t_raw * 1e3:.1f} ms/scan)")
+    print(f"LiDAR scan with {weather} (hits, intensity, weather effects): {n / t_lidar / 1e6:.2f} M rays/s "
+          f"({t_lidar * 1e3:.1f} ms/scan) = {100 * t_raw / t_lidar:.0f} % of raw")
+
+
+def bench_frames(frames: int) -> None:
+    cfg = GenerateConfig("sotif", 547, tuple(WEATHER_PRESETS), 0, LidarSpec())
+    jobs = plan_jobs(cfg)[:: max(1, 547 // frames)][:frames]
+    root = Path(tempfile.mkdtemp(prefix="bench_sim_"))
+    try:
+        (root / "meta" / "frames").mkdir(parents=True)
+        _run_job((root, cfg, jobs[0], cfg.digest()))  # world build, caches
+        t0 = time.perf_counter()
+        for job in jobs[1:]:
+            _run_job((root, cfg, job, cfg.digest()))
+        dt = time.perf_counter() - t0
+    finally:
+        shutil.rmtree(root)
+    print(f"frames/s, one process (scan + image + labels + files): {(len(jobs) - 1) / dt:.2f} "
+          f"({1e3 * dt / (len(jobs) - 1):.0f} ms/frame)")
+
+
+def bench_full(workers: int) -> None:
+    root = Path(tempfile.mkdtemp(prefix="bench_sotif_"))
+    try:
+        t0 = time.perf_counter()
+        generate(root / "sotif", "sotif", workers=workers, progress=False)
+        dt = time.perf_counter() - t0
+    finally:
+        shutil.rmtree(root)
+    print(f"full SOTIF set (547 frames, LiDAR + 1242x375 images + labels) on {workers} workers: {dt:.1f} s")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--repeats", type=int, default=10)
+    ap.add_argument("--frames", type=int, default=20)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--weather", default="HardRainNoon", choices=list(WEATHER_PRESETS))
+    ap.add_argument("--skip-full", action="store_true", help="skip the full SOTIF generation")
+    args = ap.parse_args()
+    bench_rays(args.repeats, args.weather)
+    bench_frames(args.frames)
+    if not args.skip_full:
+        bench_full(args.workers)
+
+
+if __name__ == "__main__":
+    main()
