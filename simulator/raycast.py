@@ -67,6 +67,21 @@ def rays_near_spheres(origin: np.ndarray, dirs: np.ndarray, centres: np.ndarray,
     return out
 
 
+@numba.njit(cache=True)
+def unit_normals_facing(ng: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(N, 3) unit normals turned against the ray directions (zero where ng is zero)."""
+    out = np.zeros((ng.shape[0], 3))
+    for i in range(ng.shape[0]):
+        x, y, z = float(ng[i, 0]), float(ng[i, 1]), float(ng[i, 2])
+        norm = np.sqrt(x * x + y * y + z * z)
+        if norm == 0.0:
+            continue
+        if x * dirs[i, 0] + y * dirs[i, 1] + z * dirs[i, 2] > 0:
+            norm = -norm
+        out[i, 0], out[i, 1], out[i, 2] = x / norm, y / norm, z / norm
+    return out
+
+
 class RayScene:
     """Static world + per-frame vehicles."""
 
@@ -123,7 +138,4 @@ class RayScene:
             ng[idx] = dy["Ng"][nearer]
             material[idx] = self._dyn_material[p]
             actor[idx] = self._dyn_actor[p]
-        n = ng / np.maximum(np.linalg.norm(ng, axis=1, keepdims=True), 1e-12)
-        flip = np.sum(n * dirs, axis=1) > 0
-        n[flip] *= -1
-        return Hits(t, n, material, actor)
+        return Hits(t, unit_normals_facing(ng, dirs), material, actor)

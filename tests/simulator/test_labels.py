@@ -100,3 +100,13 @@ def test_sphere_culling_matches_brute_force():
     perp2 = (rel ** 2).sum(1)[None] - along ** 2
     ref = ((along >= -r) & (perp2 <= r ** 2)).any(1)
     np.testing.assert_array_equal(rays_near_spheres(o, d, c, r), ref)
+
+
+def test_unit_normals_facing_matches_numpy():
+    from simulator.raycast import unit_normals_facing
+
+    rng = np.random.default_rng(4)
+    ng, d = rng.normal(size=(500, 3)).astype(np.float32), rng.normal(size=(500, 3))
+    ref = ng / np.linalg.norm(ng, axis=1, keepdims=True)
+    ref *= np.where(np.sum(ref * d, 1) > 0, -1.0, 1.0)[:, None]
+    np.testing.assert_allclose(unit_normals_facing(ng, d), ref, rtol=1e-6)
