@@ -1,0 +1,219 @@
+"""Sparse 3D convolution as gather -> GEMM -> scatter over neighbour tables (no dense Conv3d).
+
+A :class:`SparseTensor` is one frame's active voxels: features ``(V, C)``, integer coordinates
+``(V, 3)`` as (z, y, x) and the grid shape ``(D, H, W)``. Neighbour tables are built from the
+active voxels only: a dense int64 "index grid" (``D*H*W`` entries, value ``V`` = empty) is
+filled by scatter once per resolution, and each kernel offset is looked up with a gather. The
+table ``(V_out, K)`` holds, per output voxel and kernel offset, the input row or ``V_in``
+(which points at an appended zero row). The convolution is then one GEMM:
+``out = features_padded[table].reshape(V_out, K * C_in) @ weight (K * C_in, C_out)``.
+
+- :class:`SubMConv3d`: submanifold conv, output coords = input coords.
+- :class:`SparseConv3d`: strided ("regular") sparse conv; the output voxels are those whose
+  receptive field holds an active input, as in spconv's ``SparseConv3d``.
+- :class:`SparseInverseConv3d`: the transpose of a strided conv, back to the finer voxels of
+  a given :class:`SparseTensor` (spconv's ``SparseInverseConv3d``, used by sparse UNets).
+- :func:`to_dense`, :func:`height_compress`: dense ``(C, D, H, W)`` and BEV ``(1, C*D, H, W)``.
+
+Tables and index grids are cached on the tensor (``cache``) so the layers of one resolution
+share them; every function accepts V = 0 and exports with the dynamo ONNX exporter.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field, replace
+
+import torch
+from torch import Tensor, nn
+
+
+def _triple(v) -> tuple[int, int, int]:
+    return tuple(v) if isinstance(v, (tuple, list)) else (v, v, v)
+
+
+def out_shape(shape, kernel, stride, padding) -> tuple[int, int, int]:
+    """Output grid (D, H, W) of a strided conv: floor((n + 2p - k) / s) + 1 per axis."""
+    k, s, p = _triple(kernel), _triple(stride), _triple(padding)
+    return tuple((n + 2 * p[i] - k[i]) // s[i] + 1 for i, n in enumerate(shape))
+
+
+def kernel_offsets(kernel) -> Tensor:
+    """(K, 3) int64 offsets (dz, dy, dx) in 0..k-1, z slowest (the weight's K order)."""
+    k = _triple(kernel)
+    return torch.tensor(list(itertools.product(*(range(n) for n in k))), dtype=torch.long)
+
+
+@dataclass
+class SparseTensor:
+    """Active voxels of one frame."""
+
+    features: Tensor  # (V, C)
+    coords: Tensor  # (V, 3) int64 (z, y, x)
+    shape: tuple[int, int, int]  # (D, H, W)
+    cache: dict = field(default_factory=dict, repr=False)  # index grid + neighbour tables
+
+    def with_features(self, features: Tensor) -> "SparseTensor":
+        """Same voxels (and shared cache), new features (V, C')."""
+        return replace(self, features=features)
+
+    def index_grid(self) -> Tensor:
+        """(D*H*W,) int64: row of the voxel at each linear position, V where empty."""
+        if "grid" not in self.cache:
+            self.cache["grid"] = build_index_grid(self.coords, self.shape)
+        return self.cache["grid"]
+
+
+def linear_index(coords: Tensor, shape) -> Tensor:
+    """(M,) int64 z * H * W + y * W + x."""
+    _, h, w = shape
+    return (coords[..., 0] * h + coords[..., 1]) * w + coords[..., 2]
+
+
+def build_index_grid(coords: Tensor, shape) -> Tensor:
+    """(D*H*W,) int64 grid with the row index of each active voxel, V elsewhere."""
+    v = coords.shape[0]
+    grid = torch.full((shape[0] * shape[1] * shape[2],), v, dtype=torch.long)
+    return grid.index_put((linear_index(coords, shape),), torch.arange(v, dtype=torch.long))
+
+
+def lookup(grid: Tensor, shape, query: Tensor, valid: Tensor, missing: int) -> Tensor:
+    """Rows of voxels at query coords (..., 3); ``missing`` where out of bounds or not valid."""
+    hi = torch.tensor(shape, dtype=torch.long)
+    inside = valid & ((query >= 0) & (query < hi)).all(dim=-1)
+    lin = linear_index(torch.minimum(query.clamp(min=0), hi - 1), shape)
+    return torch.where(inside, grid[lin], torch.full_like(lin, missing))
+
+
+def subm_table(x: SparseTensor, kernel) -> Tensor:
+    """(V, K) neighbour table of a submanifold conv (centred kernel), cached per kernel."""
+    key = ("subm", _triple(kernel))
+    if key not in x.cache:
+        offsets = kernel_offsets(kernel) - torch.tensor(_triple(kernel)) // 2  # (K, 3)
+        query = x.coords[:, None, :] + offsets[None]  # (V, K, 3)
+        valid = torch.ones(query.shape[:2], dtype=torch.bool)
+        x.cache[key] = lookup(x.index_grid(), x.shape, query, valid, x.coords.shape[0])
+    return x.cache[key]
+
+
+def strided_out_coords(x: SparseTensor, kernel, stride, padding) -> tuple[Tensor, tuple]:
+    """(V_out, 3) active output coords of a strided conv, sorted by linear index; out shape."""
+    k, s, p = (torch.tensor(_triple(a)) for a in (kernel, stride, padding))
+    shape = out_shape(x.shape, kernel, stride, padding)
+    cand = x.coords[:, None, :] + p - kernel_offsets(kernel)[None]  # (V, K, 3) = out * s
+    hi = torch.tensor(shape, dtype=torch.long)
+    ok = ((cand % s) == 0).all(-1) & ((cand >= 0) & (cand < hi * s)).all(-1)  # (V, K)
+    lin = linear_index(torch.div(cand, s, rounding_mode="floor")[ok], shape)  # (M,)
+    uniq = torch.unique(lin)  # (V_out,)
+    _, h, w = shape
+    coords = torch.stack([uniq // (h * w), (uniq // w) % h, uniq % w], dim=1)
+    return coords, shape
+
+
+def strided_table(x: SparseTensor, out_coords: Tensor, kernel, stride, padding) -> Tensor:
+    """(V_out, K) input rows feeding each output voxel: in = out * s - p + k."""
+    s, p = torch.tensor(_triple(stride)), torch.tensor(_triple(padding))
+    query = out_coords[:, None, :] * s - p + kernel_offsets(kernel)[None]  # (V_out, K, 3)
+    valid = torch.ones(query.shape[:2], dtype=torch.bool)
+    return lookup(x.index_grid(), x.shape, query, valid, x.coords.shape[0])
+
+
+def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padding) -> Tensor:
+    """(V_fine, K) coarse rows feeding each fine voxel in the transposed conv.
+
+    Fine voxel o and coarse voxel i are linked by kernel offset k when o = i * s - p + k.
+    """
+    s, p = torch.tensor(_triple(stride)), torch.tensor(_triple(padding))
+    num = fine.coords[:, None, :] + p - kernel_offsets(kernel)[None]  # (V_fine, K, 3) = i * s
+    valid = ((num % s) == 0).all(-1)
+    query = torch.div(num, s, rounding_mode="floor")
+    return lookup(coarse.index_grid(), coarse.shape, query, valid, coarse.coords.shape[0])
+
+
+def gather_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
+    """(V_out, C_out) = sum_k features[table[:, k]] @ weight[k]; table value V_in = zero row."""
+    k, c_in, c_out = weight.shape
+    padded = torch.cat([features, features.new_zeros(1, c_in)], dim=0)  # (V_in + 1, C_in)
+    gathered = padded[table]  # (V_out, K, C_in)
+    return gathered.reshape(-1, k * c_in) @ weight.reshape(k * c_in, c_out)
+
+
+class _SparseConvBase(nn.Module):
+    def __init__(self, c_in: int, c_out: int, kernel, bias: bool):
+        super().__init__()
+        self.kernel = _triple(kernel)
+        k = math.prod(self.kernel)
+        self.weight = nn.Parameter(torch.empty(k, c_in, c_out))  # (K, C_in, C_out)
+        nn.init.kaiming_uniform_(self.weight.view(k * c_in, c_out).T, a=math.sqrt(5))
+        self.bias = nn.Parameter(torch.zeros(c_out)) if bias else None
+
+    def _apply(self, features: Tensor, table: Tensor) -> Tensor:
+        out = gather_gemm(features, table, self.weight)
+        return out if self.bias is None else out + self.bias
+
+
+class SubMConv3d(_SparseConvBase):
+    """Submanifold sparse conv: same active voxels in and out."""
+
+    def __init__(self, c_in: int, c_out: int, kernel=3, bias: bool = False):
+        super().__init__(c_in, c_out, kernel, bias)
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        return x.with_features(self._apply(x.features, subm_table(x, self.kernel)))
+
+
+class SparseConv3d(_SparseConvBase):
+    """Strided sparse conv: output voxels = positions whose receptive field holds an input."""
+
+    def __init__(self, c_in: int, c_out: int, kernel=3, stride=2, padding=1, bias: bool = False):
+        super().__init__(c_in, c_out, kernel, bias)
+        self.stride, self.padding = _triple(stride), _triple(padding)
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        coords, shape = strided_out_coords(x, self.kernel, self.stride, self.padding)
+        table = strided_table(x, coords, self.kernel, self.stride, self.padding)
+        return SparseTensor(self._apply(x.features, table), coords, shape)
+
+
+class SparseInverseConv3d(_SparseConvBase):
+    """Transpose of a strided sparse conv, onto the voxels of ``target`` (the finer level)."""
+
+    def __init__(self, c_in: int, c_out: int, kernel=3, stride=2, padding=1, bias: bool = False):
+        super().__init__(c_in, c_out, kernel, bias)
+        self.stride, self.padding = _triple(stride), _triple(padding)
+
+    def forward(self, x: SparseTensor, target: SparseTensor) -> SparseTensor:
+        table = inverse_table(x, target, self.kernel, self.stride, self.padding)
+        return target.with_features(self._apply(x.features, table))
+
+
+class SparseBNReLU(nn.Module):
+    """BatchNorm1d + ReLU on the features of a SparseTensor."""
+
+    def __init__(self, channels: int):
+        super().__init__()
+        self.norm = nn.BatchNorm1d(channels, eps=1e-3, momentum=0.01)
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        return x.with_features(torch.relu(self.norm(x.features)))
+
+
+def conv_block(conv: nn.Module, c_out: int) -> nn.Sequential:
+    """conv -> BN -> ReLU for single-input sparse convs (SubM / strided)."""
+    return nn.Sequential(conv, SparseBNReLU(c_out))
+
+
+def to_dense(x: SparseTensor) -> Tensor:
+    """(C, D, H, W) dense features, zeros at inactive voxels."""
+    d, h, w = x.shape
+    c = x.features.shape[1]
+    dense = x.features.new_zeros(d * h * w, c)
+    dense = dense.index_put((linear_index(x.coords, x.shape),), x.features)  # (D*H*W, C)
+    return dense.reshape(d, h, w, c).permute(3, 0, 1, 2)
+
+
+def height_compress(x: SparseTensor) -> Tensor:
+    """(1, C*D, H, W) BEV map: channels of all heights stacked (OpenPCDet HeightCompression)."""
+    dense = to_dense(x)  # (C, D, H, W)
+    c, d, h, w = dense.shape
+    return dense.reshape(1, c * d, h, w)

@@ -1,0 +1,80 @@
+"""Voxel feature encoders: scatter helpers, mean VFE, pillar feature net (PFN).
+
+All encoders take a :class:`models.voxelize.Voxels` (a point list with a point -> voxel index)
+and return per-voxel features ``(V, C)`` aligned with ``voxels.coords``. Hard and dynamic
+voxelization therefore share the same encoders: the only difference is which points reach them.
+
+Scatter ops use ``index_add`` (sum, mean) and ``scatter_reduce("amax")``, which the dynamo
+exporter turns into ONNX ScatterND / ScatterElements with a reduction.
+"""
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from models.voxelize import Grid, Voxels
+
+
+def scatter_sum(values: Tensor, index: Tensor, n: int) -> Tensor:
+    """(n, C) sums of the rows of values (P, C) grouped by index (P,)."""
+    return torch.zeros(n, values.shape[1], dtype=values.dtype).index_add(0, index, values)
+
+
+def scatter_count(index: Tensor, n: int, dtype=torch.float32) -> Tensor:
+    """(n,) number of rows per group."""
+    return torch.zeros(n, dtype=dtype).index_add(0, index, torch.ones(index.shape[0], dtype=dtype))
+
+
+def scatter_mean(values: Tensor, index: Tensor, n: int) -> Tensor:
+    """(n, C) means of the rows of values grouped by index (0 for an empty group)."""
+    count = scatter_count(index, n, values.dtype).clamp(min=1.0)  # (n,)
+    return scatter_sum(values, index, n) / count[:, None]
+
+
+def scatter_max_nonneg(values: Tensor, index: Tensor, n: int) -> Tensor:
+    """(n, C) per-group maxima of NON-NEGATIVE values (e.g. after ReLU); 0 for an empty group.
+
+    Starting from zeros and including them in the max is exact for values >= 0 and matches
+    ONNX ScatterElements(reduction="max"), which always includes the initial value.
+    """
+    out = torch.zeros(n, values.shape[1], dtype=values.dtype)
+    idx = index[:, None].expand(-1, values.shape[1])
+    return out.scatter_reduce(0, idx, values, "amax", include_self=True)
+
+
+class MeanVFE(nn.Module):
+    """Voxel feature = mean of its points (x, y, z, intensity). No parameters."""
+
+    out_channels = 4
+
+    def forward(self, voxels: Voxels) -> Tensor:
+        return scatter_mean(voxels.points[:, :4], voxels.point2voxel, voxels.num_voxels)  # (V, 4)
+
+
+class PillarVFE(nn.Module):
+    """PointPillars' pillar feature net.
+
+    Each point is decorated to 10 channels ``[x, y, z, i, x - x_m, y - y_m, z - z_m, x - x_c,
+    y - y_c, z - z_c]`` (``_m``: mean of the pillar's points, ``_c``: the pillar centre), then
+    Linear -> BatchNorm -> ReLU, and max-pooled over the pillar's points.
+    """
+
+    def __init__(self, grid: Grid, out_channels: int = 64):
+        super().__init__()
+        self.grid = grid
+        self.out_channels = out_channels
+        self.linear = nn.Linear(10, out_channels, bias=False)
+        self.norm = nn.BatchNorm1d(out_channels, eps=1e-3, momentum=0.01)
+
+    def decorate(self, voxels: Voxels) -> Tensor:
+        """(P, 10) decorated points."""
+        pts, p2v = voxels.points, voxels.point2voxel
+        mean = scatter_mean(pts[:, :3], p2v, voxels.num_voxels)  # (V, 3) metres
+        zyx = voxels.coords[p2v].float()  # (P, 3) voxel indices
+        xyz_idx = torch.flip(zyx, dims=[1])  # (P, 3) x, y, z indices
+        centre = (xyz_idx + 0.5) * self.grid.size() + self.grid.lower()  # (P, 3) metres
+        return torch.cat([pts[:, :4], pts[:, :3] - mean[p2v], pts[:, :3] - centre], dim=1)
+
+    def forward(self, voxels: Voxels) -> Tensor:
+        feats = torch.relu(self.norm(self.linear(self.decorate(voxels))))  # (P, C)
+        return scatter_max_nonneg(feats, voxels.point2voxel, voxels.num_voxels)  # (V, C)

@@ -1,0 +1,87 @@
+"""Model registry by name and checkpoint loading.
+
+- ``MODEL_NAMES``: the seven detector names (DESIGN.md).
+- ``build(name, profile="compact") -> Detector``: imports ``models.<name>`` lazily; every
+  detector module exposes ``CONFIGS: dict[str, Config]`` with keys "tiny", "compact", "kitti"
+  and ``build(profile) -> Detector``.
+- ``available()``: names whose module imports.
+- ``load_checkpoint(path) -> (Detector, meta)``: rebuilds the model of a checkpoint written by
+  ``harness.train.train`` (keys: model, profile, config, state_dict, epoch, optimizer,
+  data_hash, config_hash) and loads its weights; ``meta`` is the checkpoint without the
+  state dicts.
+"""
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+import torch
+
+from models.base import Detector
+
+MODEL_NAMES = ("pointpillars", "second", "dv_second", "parta2", "pv_rcnn", "point_rcnn", "mvx_net")
+PROFILES = ("tiny", "compact", "kitti")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file that cannot be loaded (message names the file and the problem)."""
+
+
+def _module(name: str):
+    if name not in MODEL_NAMES:
+        raise ValueError(f"unknown model {name!r}; expected one of {', '.join(MODEL_NAMES)}")
+    return importlib.import_module(f"models.{name}")
+
+
+def config(name: str, profile: str = "compact"):
+    """The frozen config dataclass of a model profile."""
+    module = _module(name)
+    if profile not in module.CONFIGS:
+        raise ValueError(f"unknown profile {profile!r} for model {name!r}; "
+                         f"expected one of {', '.join(module.CONFIGS)}")
+    return module.CONFIGS[profile]
+
+
+def build(name: str, profile: str = "compact") -> Detector:
+    """A freshly initialised detector."""
+    config(name, profile)  # validates name and profile with a clear message
+    return _module(name).build(profile)
+
+
+def available() -> tuple[str, ...]:
+    """Model names whose module imports (others may still be under construction)."""
+    names = []
+    for name in MODEL_NAMES:
+        try:
+            _module(name)
+        except ImportError:
+            continue
+        names.append(name)
+    return tuple(names)
+
+
+def count_parameters(model: torch.nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())
+
+
+def load_checkpoint(path) -> tuple[Detector, dict]:
+    """(model in eval mode, metadata) from a checkpoint file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # torch raises many types for a corrupt file
+        raise CheckpointError(f"{path}: not a readable checkpoint ({exc})") from exc
+    missing = {"model", "profile", "state_dict"} - set(ckpt) if isinstance(ckpt, dict) else {"all"}
+    if missing:
+        raise CheckpointError(f"{path}: checkpoint lacks {', '.join(sorted(missing))}")
+    model = build(ckpt["model"], ckpt["profile"])
+    try:
+        model.load_state_dict(ckpt["state_dict"])
+    except RuntimeError as exc:
+        raise CheckpointError(f"{path}: weights do not fit {ckpt['model']}/{ckpt['profile']}: "
+                              f"{exc}") from exc
+    model.eval()
+    meta = {k: v for k, v in ckpt.items() if k not in ("state_dict", "optimizer")}
+    return model, meta

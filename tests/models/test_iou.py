@@ -1,0 +1,56 @@
+import numpy as np
+import shapely.geometry as sg
+import torch
+
+from models.iou import corners_bev, iou_3d, iou_bev, iou_bev_pairs, iou_bev_sparse
+
+
+def _boxes(rng, n, spread=6.0):
+    b = np.zeros((n, 7), np.float32)
+    b[:, :2] = rng.random((n, 2)) * spread
+    b[:, 2] = rng.random(n)
+    b[:, 3:6] = rng.random((n, 3)) * [4, 2, 1.5] + [0.5, 0.3, 0.5]
+    b[:, 6] = rng.random(n) * 2 * np.pi - np.pi
+    return b
+
+
+def _poly(box):
+    return sg.Polygon(corners_bev(torch.from_numpy(box)).numpy())
+
+
+def _shapely_iou(a, b, three_d=False):
+    out = np.zeros((len(a), len(b)))
+    for i, x in enumerate(a):
+        for j, y in enumerate(b):
+            inter = _poly(x).intersection(_poly(y)).area
+            va, vb = x[3] * x[4], y[3] * y[4]
+            if three_d:
+                dz = max(0.0, min(x[2] + x[5] / 2, y[2] + y[5] / 2) - max(x[2] - x[5] / 2, y[2] - y[5] / 2))
+                inter, va, vb = inter * dz, va * x[5], vb * y[5]
+            out[i, j] = inter / (va + vb - inter)
+    return out
+
+
+def test_iou_bev_and_3d_match_shapely():
+    rng = np.random.default_rng(0)
+    a, b = _boxes(rng, 25), _boxes(rng, 30)
+    ta, tb = torch.from_numpy(a), torch.from_numpy(b)
+    np.testing.assert_allclose(iou_bev(ta, tb).numpy(), _shapely_iou(a, b), atol=2e-5)
+    np.testing.assert_allclose(iou_3d(ta, tb).numpy(), _shapely_iou(a, b, True), atol=2e-5)
+    np.testing.assert_allclose(iou_bev_sparse(ta, tb).numpy(), _shapely_iou(a, b), atol=2e-5)
+
+
+def test_iou_degenerate_cases():
+    rng = np.random.default_rng(1)
+    a = torch.from_numpy(_boxes(rng, 20))
+    np.testing.assert_allclose(iou_bev_pairs(a, a).numpy(), 1.0, atol=1e-5)  # identical boxes
+    turned = a.clone()
+    turned[:, 6] += np.pi  # same rectangle, opposite heading
+    np.testing.assert_allclose(iou_bev_pairs(a, turned).numpy(), 1.0, atol=1e-5)
+    far = a.clone()
+    far[:, 0] += 100
+    assert float(iou_bev_pairs(a, far).abs().max()) == 0.0
+    inner = a.clone()
+    inner[:, 3:5] *= 0.5  # nested rectangle: IoU = 1/4
+    np.testing.assert_allclose(iou_bev_pairs(a, inner).numpy(), 0.25, atol=1e-5)
+    assert iou_bev(a[:0], a).shape == (0, 20)

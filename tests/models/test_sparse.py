@@ -1,0 +1,75 @@
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from models.sparse import (SparseConv3d, SparseInverseConv3d, SparseTensor, SubMConv3d, height_compress,
+                           out_shape, to_dense)
+
+SHAPE = (6, 9, 11)
+
+
+def _sparse(rng, n, c, shape=SHAPE):
+    lin = rng.choice(int(np.prod(shape)), size=n, replace=False)
+    coords = np.stack(np.unravel_index(lin, shape), 1)
+    return SparseTensor(torch.from_numpy(rng.standard_normal((n, c)).astype(np.float32)),
+                        torch.from_numpy(coords).long(), shape)
+
+
+def _dense_weight(conv):
+    k = conv.kernel
+    w = conv.weight.detach()  # (K, Cin, Cout)
+    return w.reshape(*k, w.shape[1], w.shape[2]).permute(4, 3, 0, 1, 2)  # (Cout, Cin, kz, ky, kx)
+
+
+def _at(dense, coords):
+    return dense[:, coords[:, 0], coords[:, 1], coords[:, 2]].T  # (V, C)
+
+
+def test_subm_conv_matches_dense_conv3d():
+    rng = np.random.default_rng(0)
+    for n in (0, 1, 40, 300):
+        x = _sparse(rng, n, 3)
+        conv = SubMConv3d(3, 5)
+        y = conv(x)
+        ref = F.conv3d(to_dense(x)[None], _dense_weight(conv), padding=1)[0]
+        assert torch.equal(y.coords, x.coords)
+        torch.testing.assert_close(y.features, _at(ref, x.coords), rtol=1e-4, atol=1e-5)
+
+
+def test_strided_conv_matches_dense_conv3d():
+    rng = np.random.default_rng(1)
+    for kernel, stride, pad in ((3, 2, 1), ((3, 1, 1), (2, 1, 1), 0), (3, 2, (0, 1, 1))):
+        x = _sparse(rng, 120, 4)
+        conv = SparseConv3d(4, 6, kernel, stride, pad)
+        y = conv(x)
+        occ = F.conv3d((to_dense(x).abs().sum(0, keepdim=True) > 0).float()[None],
+                       torch.ones(1, 1, *conv.kernel), stride=stride, padding=pad)[0, 0]
+        assert y.shape == out_shape(SHAPE, kernel, stride, pad) == tuple(occ.shape)
+        ref_coords = torch.nonzero(occ > 0)
+        assert torch.equal(y.coords, ref_coords)  # both sorted by linear index
+        ref = F.conv3d(to_dense(x)[None], _dense_weight(conv), stride=stride, padding=pad)[0]
+        torch.testing.assert_close(y.features, _at(ref, y.coords), rtol=1e-4, atol=1e-5)
+
+
+def test_inverse_conv_matches_conv_transpose3d():
+    rng = np.random.default_rng(2)
+    fine = _sparse(rng, 150, 2)
+    down = SparseConv3d(2, 4, 3, 2, 1)(fine)
+    up = SparseInverseConv3d(4, 3, 3, 2, 1)
+    y = up(down, fine)
+    assert torch.equal(y.coords, fine.coords)
+    w = up.weight.detach().reshape(3, 3, 3, 4, 3).permute(3, 4, 0, 1, 2)  # (Cin, Cout, k, k, k)
+    natural = [(n - 1) * 2 - 2 + 3 for n in down.shape]  # conv_transpose3d's output size
+    extra = tuple(f - n for f, n in zip(SHAPE, natural))  # output_padding back to the fine grid
+    dense = F.conv_transpose3d(to_dense(down)[None], w, stride=2, padding=1, output_padding=extra)[0]
+    torch.testing.assert_close(y.features, _at(dense, fine.coords), rtol=1e-4, atol=1e-5)
+
+
+def test_height_compress_stacks_channels_per_height():
+    rng = np.random.default_rng(3)
+    x = _sparse(rng, 50, 3)
+    bev = height_compress(x)
+    assert bev.shape == (1, 3 * SHAPE[0], SHAPE[1], SHAPE[2])
+    for (z, yy, xx), f in zip(x.coords.tolist(), x.features):
+        torch.testing.assert_close(bev[0, torch.arange(3) * SHAPE[0] + z, yy, xx], f)
+    assert int((bev != 0).sum()) == int((x.features != 0).sum())

@@ -1,0 +1,42 @@
+import numpy as np
+import torch
+
+from models.vfe import MeanVFE, PillarVFE, scatter_max_nonneg, scatter_mean
+from models.voxelize import Grid, dynamic_voxelize
+
+GRID = Grid((0.0, -4.0, -3.0, 8.0, 4.0, 1.0), (0.5, 0.5, 4.0))
+
+
+def test_scatter_mean_and_max_match_loops():
+    rng = np.random.default_rng(0)
+    vals = rng.random((200, 3)).astype(np.float32)
+    idx = rng.integers(0, 30, 200)
+    mean = scatter_mean(torch.from_numpy(vals), torch.from_numpy(idx), 32).numpy()
+    mx = scatter_max_nonneg(torch.from_numpy(vals), torch.from_numpy(idx), 32).numpy()
+    for g in range(32):
+        rows = vals[idx == g]
+        ref_mean = rows.mean(0) if len(rows) else np.zeros(3)
+        ref_max = rows.max(0) if len(rows) else np.zeros(3)
+        np.testing.assert_allclose(mean[g], ref_mean, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(mx[g], ref_max)
+
+
+def test_mean_vfe_and_pillar_decoration():
+    rng = np.random.default_rng(1)
+    pts = torch.from_numpy((rng.random((400, 4)) * [8, 8, 4, 1] + [0, -4, -3, 0]).astype(np.float32))
+    vox = dynamic_voxelize(pts, GRID)
+    feats = MeanVFE()(vox).numpy()
+    pillar = PillarVFE(GRID, 8)
+    dec = pillar.decorate(vox).numpy()
+    for i, (z, y, x) in enumerate(vox.coords.tolist()):
+        rows = vox.points[vox.point2voxel == i].numpy()
+        np.testing.assert_allclose(feats[i], rows.mean(0), rtol=1e-5, atol=1e-6)
+        sel = (vox.point2voxel == i).numpy()
+        centre = np.array([x + 0.5, y + 0.5, z + 0.5]) * GRID.voxel_size + np.array(GRID.pc_range[:3])
+        np.testing.assert_allclose(dec[sel, 4:7], rows[:, :3] - rows[:, :3].mean(0), atol=1e-5)
+        np.testing.assert_allclose(dec[sel, 7:10], rows[:, :3] - centre, atol=1e-5)
+    pillar.eval()
+    out = pillar(vox).detach().numpy()
+    per_point = torch.relu(pillar.norm(pillar.linear(torch.from_numpy(dec)))).detach().numpy()
+    for i in range(vox.num_voxels):
+        np.testing.assert_allclose(out[i], per_point[(vox.point2voxel == i).numpy()].max(0), rtol=1e-6)

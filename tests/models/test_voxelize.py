@@ -1,0 +1,64 @@
+import numpy as np
+import torch
+
+from models.voxelize import Grid, dynamic_voxelize, filter_range, hard_voxelize, range_mask
+
+GRID = Grid((0.0, -4.0, -2.0, 8.0, 4.0, 1.0), (0.5, 0.5, 0.75))
+
+
+def _cloud(rng, n):
+    lo, hi = np.array([-1, -5, -3, 0]), np.array([9, 5, 2, 1])
+    return torch.from_numpy((rng.random((n, 4)) * (hi - lo) + lo).astype(np.float32))
+
+
+def _reference(points, grid, max_points=None, max_voxels=None):
+    """Plain loop: voxels in order of first appearance, points in input order."""
+    pts = points.numpy()
+    x0, y0, z0, x1, y1, z1 = grid.pc_range
+    groups = {}
+    for p in pts:
+        if not (x0 <= p[0] < x1 and y0 <= p[1] < y1 and z0 <= p[2] < z1):
+            continue
+        key = tuple(int(np.floor((p[a] - grid.pc_range[a]) / grid.voxel_size[a])) for a in (2, 1, 0))
+        groups.setdefault(key, []).append(p)
+    keys = list(groups)[:max_voxels] if max_voxels else list(groups)
+    return {k: np.stack(groups[k][:max_points] if max_points else groups[k]) for k in keys}
+
+
+def _as_dict(vox):
+    out = {}
+    for i, c in enumerate(vox.coords.tolist()):
+        out[tuple(c)] = vox.points[vox.point2voxel == i].numpy()
+    return out
+
+
+def test_range_mask_matches_numpy():
+    rng = np.random.default_rng(0)
+    pts = _cloud(rng, 500)
+    lo, hi = np.array(GRID.pc_range[:3]), np.array(GRID.pc_range[3:])
+    ref = ((pts.numpy()[:, :3] >= lo) & (pts.numpy()[:, :3] < hi)).all(1)
+    assert np.array_equal(range_mask(pts, GRID.pc_range).numpy(), ref)
+    assert filter_range(pts, GRID.pc_range).shape[0] == ref.sum()
+
+
+def test_dynamic_voxelize_matches_loop():
+    rng = np.random.default_rng(1)
+    for n in (0, 1, 300, 2000):
+        pts = _cloud(rng, n)
+        vox = dynamic_voxelize(pts, GRID)
+        ref, got = _reference(pts, GRID), _as_dict(vox)
+        assert set(ref) == set(got)
+        for k in ref:
+            assert np.array_equal(np.sort(ref[k], 0), np.sort(got[k], 0))
+        assert vox.shape == (4, 16, 16)
+
+
+def test_hard_voxelize_caps_like_loop():
+    rng = np.random.default_rng(2)
+    for n, t, v in ((0, 3, 10), (500, 2, 40), (3000, 5, 100000), (3000, 1, 7)):
+        pts = _cloud(rng, n)
+        vox = hard_voxelize(pts, GRID, t, v)
+        ref, got = _reference(pts, GRID, t, v), _as_dict(vox)
+        assert list(ref) == list(got)  # same voxels, same order
+        for k in ref:
+            assert np.array_equal(ref[k], got[k])  # same points, input order
