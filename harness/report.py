@@ -1,0 +1,180 @@
+"""Render a run directory into ``tables/``, ``figures/``, ``report.md`` and a self-contained ``index.html``.
+
+Everything comes from the run's result files (``results.json``, ``results/<model>.json``, the data
+set's meta and scans, the prediction files) through ``harness.tables`` and ``harness.figures``; the
+jinja2 templates in ``harness/templates`` only lay the prepared tables and figures out. The whole
+report is built in memory first and then written file by file atomically, so a bad input (missing or
+corrupt ``results.json``) raises ``KittiError`` naming the file before anything is written.
+"""
+from __future__ import annotations
+
+import base64
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+from jinja2 import Environment, FileSystemLoader, StrictUndefined
+from markupsafe import Markup
+
+from harness import figures, sotif, tables
+from harness.kitti import atomic_write_bytes, atomic_write_text
+
+TEMPLATES = Path(__file__).parent / "templates"
+
+
+@dataclass
+class Section:
+    """One block of the report: a heading, a sentence saying what it shows, tables and figures."""
+
+    key: str
+    title: str
+    intro: str
+    tables: list  # (caption, DataFrame, decimals)
+    figures: list  # figure names (keys of the rendered figure dict)
+    details: bool = False  # long tables folded away in the HTML
+    figures_first: bool = False
+
+
+# ----------------------------------------------------------------------------- figures
+def _figure_specs(run: tables.Run, t: dict) -> dict:
+    """``{name: (caption, Figure)}`` for every figure the run has the data for."""
+    specs = {}
+    matrix = tables.headline_matrix(t["weather_detail"])
+    if not matrix.empty:
+        specs["heatmap"] = ("Headline AP40 3D @0.7 (all distances, no 2D-height filter) per weather preset and model.",
+                            figures.heatmap_figure(matrix, "Headline AP per weather preset"))
+    overall = pd.DataFrame({"model": list(run.results),
+                            "ap": [r["headline"]["3d"]["0.7"] for r in run.results.values()]})
+    if not t["runtime"].empty:
+        pts = overall.merge(t["runtime"][["model", "ort_p50_ms"]], on="model", how="left")
+        specs["ap_latency"] = ("Overall headline AP against onnxruntime latency per frame (p50, log scale).",
+                               figures.scatter_figure(pts, "ort_p50_ms", "ap", "onnxruntime latency p50 (ms)",
+                                                      "AP40 3D @0.7 (%)", "Accuracy vs latency"))
+    curves = {n: (r["pr_curve"]["recall"], r["pr_curve"]["precision"]) for n, r in run.results.items() if "pr_curve" in r}
+    if curves:
+        specs["pr_curves"] = ("Precision-recall curves of the headline metric (3D IoU 0.7, all distances, 41 points).",
+                              figures.pr_figure(curves, "Precision-recall, 3D @0.7"))
+    dist = pd.DataFrame({n: r["distance"]["3d"]["0.7"] for n, r in run.results.items()
+                         if "3d" in r.get("distance", {})}).T
+    if not dist.empty:
+        specs["ap_distance"] = ("AP40 3D @0.7 per ground-truth distance bin (no 2D-height filter).",
+                                figures.distance_figure(dist, "AP vs distance"))
+    if "n_points_mean" in t["data_by_weather"].columns:
+        specs["data"] = ("Points per frame and LiDAR range per weather preset (SOTIF data set).",
+                         figures.data_figure(t["data_by_weather"]))
+    data_dir = run.run_dir / "data" / "sotif"
+    if run.meta is not None and (data_dir / "ImageSets" / "test.txt").is_file():
+        thr = {n: _threshold(m) for n, m in run.summary["models"].items()}
+        frames = figures.bev_frames(run.run_dir, run.meta, thr)
+        if frames:
+            specs["bev"] = ("Bird's-eye view of one test frame per weather (the first after the lane change): points, "
+                            "ground truth (green), each model's detections above its operating threshold (dashed).",
+                            figures.bev_figure(frames, list(thr)))
+    return specs
+
+
+def _threshold(model: dict) -> float:
+    rows = list((model.get("sotif") or {}).values())
+    return float(rows[0]["threshold"]) if rows and rows[0].get("threshold") is not None else figures.DEFAULT_THRESHOLD
+
+
+# ----------------------------------------------------------------------------- display tables
+def _ci_display(wide: pd.DataFrame, models: list[str]) -> pd.DataFrame:
+    """The main table with each model's value as "AP [lo, hi]"."""
+    if wide.empty:
+        return wide
+    out = wide[["weather"]].copy()
+    for m in models:
+        if m in wide.columns:
+            out[m] = [("–" if pd.isna(v) else f"{v:.1f} [{lo:.1f}, {hi:.1f}]")
+                      for v, lo, hi in zip(wide[m], wide[f"{m} lo"], wide[f"{m} hi"])]
+    return out
+
+
+def _group_matrix(long: pd.DataFrame, column: str) -> pd.DataFrame:
+    m = tables.headline_matrix(long, column)
+    return m.rename_axis(column).reset_index() if not m.empty else m
+
+
+def _sections(run: tables.Run, t: dict) -> list[Section]:
+    models = run.models
+    c = sotif.constants()
+    return [
+        Section("main", "Headline AP per weather preset",
+                "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% bootstrap intervals "
+                "over frames (DESIGN.md: the SOTIF targets are far and small, so KITTI's moderate/hard filters "
+                "would ignore most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"], figures_first=True),
+        Section("paper", "KITTI protocol (the paper's tables)",
+                "AP11 and AP40 at IoU 0.7 for 2D bbox, BEV, 3D and AOS with KITTI's easy/moderate/hard filters; "
+                "recall at the proposals (RoI) and refined boxes (RCNN) for two-stage models.",
+                [("AP at IoU 0.7 (%)", t["kitti_ap"], 2), ("Recall of two-stage models (%)", t["recall"], 1)], []),
+        Section("sotif", "SOTIF view: the slow car after the cut-out",
+                f"First detection of the slow car in the ego lane after the lane change (BEV IoU >= {c['iou_bev_min']}, "
+                "score >= the model's F1-optimal threshold on the val split), as distance to its rear face / time "
+                f"after the lane change, against the stopping distance dv*{c['t_react_s']:g} s + dv^2/(2*"
+                f"{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m (column stopping_distance_m).",
+                [("", t["sotif_matrix"], 1)], []),
+        Section("robustness", "Robustness",
+                "AP relative to each model's clean value (mean of ClearNoon and ClearSunset); mRR = mean relative "
+                "AP over the rain and wet presets (Robo3D); headline AP by time of day and precipitation class.",
+                [("Summary", t["robustness"], 2), ("AP relative to clean, per weather", t["relative_ap"], 2),
+                 ("By time of day (AP40 3D @0.7)", _group_matrix(t["time_of_day"], "time_of_day"), 1),
+                 ("By precipitation class (AP40 3D @0.7)", _group_matrix(t["precipitation_class"], "precipitation_class"), 1)],
+                []),
+        Section("detail", "Per weather and model: all numbers",
+                "Headline 3D and BEV AP, 95% interval, KITTI moderate AP40, AP per distance bin and RCNN recall.",
+                [("", t["weather_detail"], 1)], ["ap_distance", "pr_curves"], details=True),
+        Section("runtime", "Runtime",
+                "onnxruntime latency per frame (p50/p90), throughput, ONNX size, parameters, peak resident memory, "
+                "torch eager vs onnxruntime (speed-up, share of frames with the same boxes, largest score difference).",
+                [("", t["runtime"], 2)], ["ap_latency"]),
+        Section("data", "Data", "The SOTIF test data per weather preset and one scene per preset.",
+                [("", t["data_by_weather"], 1)], ["data", "bev"]),
+        Section("stages", "Pipeline stages", "Wall time per stage of this run (seconds).", [("", t["stages"], 1)], []),
+    ]
+
+
+# ----------------------------------------------------------------------------- rendering
+def _overview(run: tables.Run) -> dict:
+    s, data = run.summary, run.summary.get("data", {})
+    models = [{"name": n, "architecture": m.get("architecture", "?"), "two_stage": bool(m.get("two_stage")),
+               "uses_camera": bool(m.get("uses_camera"))} for n, m in s["models"].items()]
+    frames = {k: data.get(f"n_{k}_frames") for k in ("test", "val", "train")}
+    total = sum(v for v in (s.get("stage_seconds") or {}).values() if isinstance(v, (int, float)))
+    return {"profile": s.get("profile", "?"), "created": s.get("created", "?"), "models": models, "frames": frames,
+            "total_seconds": total or None}
+
+
+def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
+    if df.empty:
+        return Markup("<p class='empty'>(not available in this run)</p>")
+    return Markup(df.to_html(index=False, na_rep="–", border=0, classes="tbl",
+                             float_format=lambda v, d=decimals: f"{v:.{d}f}"))
+
+
+def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, str]:
+    """(report.md, index.html) text."""
+    sections = [s for s in _sections(run, t) if any(not df.empty for _, df, _ in s.tables) or
+                any(f in figs for f in s.figures)]
+    ctx = {"overview": _overview(run), "sections": sections, "captions": {k: v[0] for k, v in figs.items()}}
+    env_md = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=False,
+                         keep_trailing_newline=True)
+    md = env_md.get_template("report.md.j2").render(**ctx, images=md_links, md=tables.to_markdown)
+    env_html = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=True)
+    uris = {k: "data:image/png;base64," + base64.b64encode(v[1]).decode("ascii") for k, v in figs.items()}
+    html = env_html.get_template("index.html.j2").render(**ctx, images=uris, table=_html_table)
+    return md, html
+
+
+def render(run_dir) -> Path:
+    """Write tables/, figures/, report.md and index.html of a run directory; returns index.html's path."""
+    run_dir = Path(run_dir)
+    run = tables.load_run(run_dir)
+    t = tables.build_tables(run)
+    figs = {name: (caption, figures.png(fig)) for name, (caption, fig) in _figure_specs(run, t).items()}
+    md, html = _render(run, t, figs, {k: f"figures/{k}.png" for k in figs})
+    tables.write_tables(run_dir, run)
+    for name, (_, data) in figs.items():
+        atomic_write_bytes(run_dir / "figures" / f"{name}.png", data)
+    atomic_write_text(run_dir / "report.md", md)
+    return atomic_write_text(run_dir / "index.html", html)

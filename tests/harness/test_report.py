@@ -1,0 +1,137 @@
+import json
+import re
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness import kitti, report
+from harness.evaluate import evaluate, write_results
+from harness.kitti import KittiError, Labels
+from harness.sotif import sotif_view
+
+WEATHERS = {"ClearNoon": ("Noon", "dry"), "ClearSunset": ("Sunset", "dry"), "HardRainNight": ("Night", "rain")}
+
+
+def _frame(rng, data, fid, k):
+    """Slow car ahead in the ego lane (label row 0) and two other cars; a small scan around them."""
+    calib = kitti.kitti_calib()
+    boxes = np.array([[55.0 - 3 * k, 0.0, -0.9, 4.75, 1.83, 1.45, 0.0], [25.0, 3.6, -0.9, 4.2, 1.8, 1.5, 0.0],
+                      [40.0, -3.6, -0.9, 4.4, 1.8, 1.5, 0.05]], np.float32)
+    pts = np.concatenate([np.c_[rng.uniform(-0.5, 0.5, (150, 3)) * b[3:6] + b[:3], rng.uniform(0, 1, 150)] for b in boxes])
+    kitti.write_points(kitti.frame_path(data, "velodyne", fid), pts.astype(np.float32))
+    kitti.write_calib(kitti.frame_path(data, "calib", fid), calib)
+    kitti.write_labels(kitti.frame_path(data, "label_2", fid), Labels.from_lidar(boxes, calib, ["Car"] * 3))
+    return boxes, calib
+
+
+def _predict(rng, out, fid, boxes, calib, quality, two_stage):
+    dets = boxes + np.c_[rng.normal(0, quality, (len(boxes), 2)), np.zeros((len(boxes), 5))]
+    scores = rng.uniform(0.4, 0.95, len(boxes))
+    kitti.write_labels(out / f"{fid}.txt", Labels.from_lidar(dets, calib, ["Car"] * len(dets), score=scores))
+    if two_stage:
+        kitti.write_labels(out / "rois" / f"{fid}.txt", Labels.from_lidar(dets, calib, ["Car"] * len(dets), score=scores))
+
+
+def make_run(root, models=(("alpha", 0.1, False), ("beta", 0.6, True)), sotif_columns=True):
+    """A run directory as the pipeline writes it, with tiny data and real evaluation results."""
+    rng = np.random.default_rng(0)
+    data = root / "data" / "sotif"
+    rows = []
+    for w_i, (weather, (tod, precip)) in enumerate(WEATHERS.items()):
+        for k in range(4):
+            fid = f"{4 * w_i + k:06d}"
+            boxes, calib = _frame(rng, data, fid, k)
+            for name, quality, two_stage in models:
+                folder = "predictions_val" if k == 0 else "predictions"
+                _predict(rng, root / folder / name, fid, boxes, calib, quality * (1 + w_i), two_stage)
+            rows.append({"frame_id": fid, "split": "val" if k == 0 else "test", "weather": weather, "time_of_day": tod,
+                         "precipitation_class": precip, "scenario_time_s": 0.5 * k, "lane_change_time_s": 0.5,
+                         "slow_car_label_index": 0, "ego_speed_mps": 25.0, "slow_car_speed_mps": 16.7,
+                         "n_points": 450})
+    meta = pd.DataFrame(rows)
+    if not sotif_columns:
+        meta = meta[["frame_id", "split", "weather", "time_of_day", "precipitation_class", "n_points"]]
+    kitti.write_frames_meta(data / "meta" / "frames.csv", meta)
+    for split in ("test", "val"):
+        kitti.write_image_set(data / "ImageSets" / f"{split}.txt", [r["frame_id"] for r in rows if r["split"] == split])
+    summary = {}
+    for name, _, two_stage in models:
+        res = evaluate(data, root / "predictions" / name, split=data / "ImageSets" / "test.txt",
+                       group_by=["weather", "time_of_day", "precipitation_class"], meta=data / "meta" / "frames.csv",
+                       n_bootstrap=5)
+        write_results(root / "results" / f"{name}.json", res)
+        summary[name] = {"architecture": name.upper(), "two_stage": two_stage, "uses_camera": False,
+                         "onnx": f"models/{name}.onnx", "size_mb": 3.2, "params": 1_200_000,
+                         "train": {"seconds": 5.0, "epochs": 2, "final_loss": 0.5},
+                         "runtime": {"onnxruntime": {"latency_ms_p50": 40.0 * (1 + two_stage), "latency_ms_p90": 50.0, "fps": 22.0},
+                                     "torch_eager_ms_p50": 90.0, "ort_speedup": 2.2, "peak_memory_mb": 310.0,
+                                     "agreement": {"same_boxes": 1.0, "max_abs_score_diff": 2e-6}},
+                         "results": f"results/{name}.json"}
+        if sotif_columns:
+            summary[name]["sotif"] = sotif_view(data, root / "predictions" / name,
+                                                val_predictions_dir=root / "predictions_val" / name)
+    doc = {"schema": "sotif-bench/run/1", "profile": "quick", "created": "2026-01-01T00:00:00+00:00", "models": summary,
+           "data": {"n_test_frames": 9, "n_val_frames": 3, "n_train_frames": 40, "stats": "tables/data_stats.csv"},
+           "stage_seconds": {"simulate_sotif": 12.5, "train_alpha": 30.0}}
+    kitti.atomic_write_text(root / "results.json", json.dumps(doc))
+    return root
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    return make_run(tmp_path_factory.mktemp("run"))
+
+
+def test_render_writes_a_self_contained_report(run_dir):
+    index = report.render(run_dir)
+    html = index.read_text()
+    assert index == run_dir / "index.html"
+    assert not re.search(r"https?://|<script|<link", html)
+    srcs = re.findall(r'src="([^"]*)"', html)
+    assert srcs and all(s.startswith("data:image/png;base64,") for s in srcs)
+    assert len(srcs) == 6  # heatmap, AP/latency, PR curves, AP/distance, data per weather, BEV
+    # the reader sees what was run, then the heatmap, then the main table, then the rest
+    pos = [html.index(s) for s in ("profile</b> quick", "alpha, beta", 'alt="heatmap"', "HardRainNight", 'id="paper"')]
+    assert pos == sorted(pos)
+    assert 'id="sotif"' in html and "Recall of two-stage models" in html
+
+
+def test_report_md_links_written_figures_and_tables(run_dir):
+    report.render(run_dir)
+    md = (run_dir / "report.md").read_text()
+    links = re.findall(r"\]\((figures/[^)]+)\)", md)
+    assert links and all((run_dir / link).is_file() for link in links)
+    assert md.startswith("# sotif-bench report: profile quick")
+    assert "| weather | alpha | beta |" in md
+    for name in ("kitti_ap", "weather_headline", "sotif", "runtime", "robustness"):
+        assert (run_dir / "tables" / f"{name}.csv").is_file()
+    main = pd.read_csv(run_dir / "tables" / "weather_headline.csv")
+    res = json.loads((run_dir / "results" / "alpha.json").read_text())
+    for weather, row in res["groups_by"]["weather"]["rows"].items():
+        assert main.loc[main.weather == weather, "alpha"].item() == pytest.approx(row["headline"]["3d"]["0.7"])
+        assert f"{row['headline']['3d']['0.7']:.1f} [" in md
+
+
+def test_render_is_deterministic(run_dir):
+    first = report.render(run_dir).read_bytes()
+    assert report.render(run_dir).read_bytes() == first
+
+
+def test_optional_parts_are_skipped(tmp_path):
+    root = make_run(tmp_path, models=(("alpha", 0.1, False),), sotif_columns=False)
+    (root / "data" / "sotif" / "meta" / "frames.csv").unlink()  # no data meta at all
+    html = report.render(root).read_text()
+    assert 'id="sotif"' not in html and "Recall of two-stage models" in html  # heading kept, table says so
+    assert "(not available in this run)" in html and 'alt="bev"' not in html
+    assert 'alt="heatmap"' in html
+
+
+@pytest.mark.parametrize("content,message", [(None, "file not found"), ("{broken", "not valid JSON"),
+                                              ('{"schema": "sotif-bench/run/1", "models": {}}', "no models")])
+def test_bad_results_json_names_the_file_and_writes_nothing(tmp_path, content, message):
+    if content is not None:
+        (tmp_path / "results.json").write_text(content)
+    with pytest.raises(KittiError, match=f"results.json: {message}"):
+        report.render(tmp_path)
+    assert not (tmp_path / "index.html").exists() and not (tmp_path / "tables").exists()
