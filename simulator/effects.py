@@ -61,9 +61,9 @@ def received_power(rho: np.ndarray, cos_inc: np.ndarray, r: np.ndarray, t2: np.n
     return rho * cos_inc * t2 / np.maximum(r, 1e-3) ** 2
 
 
-def goodin_range_sigma(r: np.ndarray, rain_mmh: float) -> np.ndarray:
-    """Standard deviation of the range error in rain (Goodin et al. 2019), metres."""
-    return 0.02 * r * (1.0 - math.exp(-rain_mmh)) ** 2
+def goodin_range_sigma(r: np.ndarray, rain_mmh: float, k: float = 0.02) -> np.ndarray:
+    """Standard deviation of the range error in rain (Goodin et al. 2019: k = 0.02), metres."""
+    return k * np.asarray(r) * (1.0 - math.exp(-rain_mmh)) ** 2
 
 
 def fresnel_reflectance(cos_i: np.ndarray, n: float = WATER_INDEX) -> np.ndarray:

@@ -37,6 +37,7 @@ class LidarSpec:
     mount_height: float = 1.73  # m above the road
     range_noise_m: float = 0.02  # 1 sigma, every return
     detect_reflectivity: float = 0.02  # weakest normal-incidence target seen at max_range
+    rain_range_noise: float = 0.02  # Goodin et al.: sigma = k r (1 - exp(-R))^2
     model: str = "physics"  # "physics" or "carla"
 
     @property
@@ -181,7 +182,8 @@ def physics_returns(dirs: np.ndarray, world_dirs: np.ndarray, hits, spec: LidarS
     r_out, i_out = hard_returns(hits.t, hits.normal, world_dirs, hits.material, REFLECTIVITY.astype(np.float64),
                                 GROUND, cover, a_rain, a_fog, weather.fog_distance, spec.min_power,
                                 spec.min_range, spec.max_range, spec.range_noise_m,
-                                float(effects.goodin_range_sigma(np.array(1.0), rain)), rng.standard_normal(n))
+                                float(effects.goodin_range_sigma(1.0, rain, spec.rain_range_noise)),
+                                rng.standard_normal(n))
     hard_or_far = np.where(np.isfinite(r_out), r_out, spec.max_range)
     soft = np.full(n, np.inf)
     soft_i = np.zeros(n)

@@ -84,3 +84,14 @@ def test_split_plans():
 def test_invalid_arguments(tmp_path, kwargs, message):
     with pytest.raises(ValueError, match=message):
         generate(tmp_path / "x", **{"progress": False, **kwargs})
+
+
+def test_ply_export_and_preview(sotif_set, tmp_path):
+    from simulator.export import export_ply, preview
+
+    ply = export_ply(sotif_set, "000001", tmp_path / "f.ply").read_text().splitlines()
+    meta = kitti.read_frames_meta(sotif_set / "meta" / "frames.csv")
+    n_labels = len(kitti.read_labels(kitti.frame_path(sotif_set, "label_2", "000001")))
+    assert f"element vertex {meta['n_points'][1] + 8 * n_labels}" in ply
+    assert len(ply) == ply.index("end_header") + 1 + meta["n_points"][1] + 8 * n_labels + 12 * n_labels
+    assert preview(sotif_set, "000001", tmp_path / "p.png").stat().st_size > 10000
