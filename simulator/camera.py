@@ -21,6 +21,8 @@ from simulator.raycast import RayScene
 from simulator.weather import WeatherPreset, fog_extinction, rain_rate_mmh, road_water_cover, time_of_day
 
 SUN_AZIMUTH = math.radians(150.0)  # world frame, CARLA's -1 means "unset"
+HEADLIGHT_RGB = np.array([1.0, 0.95, 0.8])
+TAILLIGHT_RGB = np.array([1.0, 0.08, 0.04])
 
 
 @dataclass(frozen=True)
@@ -103,10 +105,14 @@ def shade(hits, dirs_w: np.ndarray, cam_w: np.ndarray, ego_fwd: np.ndarray, p: W
         fres = effects.fresnel_reflectance(np.abs(np.sum(dirs_w[road] * hits.normal[road], 1)))[:, None]
         col[road] = col[road] * (1 - 0.45 * cover) + cover * np.clip(fres * 1.5, 0, 1) * sky_colour(refl, p, phase)
     col[~hit] = sky_colour(dirs_w[~hit], p, phase)
-    beta = 0.0015 + 3 * fog_extinction(p) + 0.001 * rain_rate_mmh(p) ** 0.6
-    haze = np.exp(-beta * np.where(hit, t, 1e4))[:, None]
+    haze = np.exp(-haze_beta(p) * np.where(hit, t, 1e4))[:, None]
     horizon = sky_colour(np.tile([[1.0, 0.0, 0.02]], (1, 1)), p, phase)[0]
     return col * haze + horizon * (1 - haze)
+
+
+def haze_beta(p: WeatherPreset) -> float:
+    """Visible-light extinction (1/m) for distance haze: clear air, fog, rain."""
+    return 0.0015 + 3 * fog_extinction(p) + 0.001 * rain_rate_mmh(p) ** 0.6
 
 
 def _streaks(img: Image.Image, rain: float, night: bool, rng: np.random.Generator) -> Image.Image:
@@ -125,6 +131,50 @@ def _streaks(img: Image.Image, rain: float, night: bool, rng: np.random.Generato
     return Image.composite(grey, img, overlay.point(lambda a: a // 2))
 
 
+def light_points(vehicles) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World positions (L, 3), facing directions (L, 3) and colours (L, 3) of head/tail lights."""
+    pos, face, col = [], [], []
+    for v in vehicles:
+        l, w, h = v.dims
+        fwd = np.array([math.cos(v.heading), math.sin(v.heading), 0.0])
+        left = np.array([-fwd[1], fwd[0], 0.0])
+        for sign, zf, colour in ((1.0, 0.4, HEADLIGHT_RGB), (-1.0, 0.5, TAILLIGHT_RGB)):
+            zf = zf if v.body != "truck" else zf / 2
+            for side in (-0.33, 0.33):
+                pos.append(np.array([v.x, v.y, 0.0]) + fwd * sign * (l / 2 + 0.02) + left * side * w + [0, 0, zf * h])
+                face.append(fwd * sign)
+                col.append(colour)
+    return np.array(pos).reshape(-1, 3), np.array(face).reshape(-1, 3), np.array(col).reshape(-1, 3)
+
+
+def add_light_glows(img: np.ndarray, scene: RayScene, lidar2img: np.ndarray, pose, cam_w: np.ndarray,
+                    mount_height: float, strength: float, haze_beta: float) -> np.ndarray:
+    """Add visible, unoccluded head/tail lights as small Gaussian glows to a float image (H, W, 3)."""
+    pos, face, col = light_points(scene.vehicles)
+    if strength <= 0 or len(pos) == 0:
+        return img
+    to_cam = cam_w - pos
+    dist = np.linalg.norm(to_cam, axis=1)
+    facing = np.sum(to_cam * face, axis=1) > 0
+    dirs = -to_cam / dist[:, None]
+    free = scene.cast(cam_w, dirs).t >= dist - 0.3
+    local = pose.to_lidar(pos, mount_height)
+    uvw = np.c_[local, np.ones(len(local))] @ np.asarray(lidar2img, dtype=np.float64).T
+    ok = facing & free & (uvw[:, 2] > 0.5)
+    h, w = img.shape[:2]
+    for (u, v, z), d, c in zip(uvw[ok, :3], dist[ok], col[ok]):
+        u, v = u / z, v / z
+        sigma = max(1.0, 2.0 * 721.0 * 0.12 / d)
+        r = int(3 * sigma) + 1
+        x0, x1, y0, y1 = max(int(u) - r, 0), min(int(u) + r + 1, w), max(int(v) - r, 0), min(int(v) + r + 1, h)
+        if x0 >= x1 or y0 >= y1:
+            continue
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        g = np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma ** 2))
+        img[y0:y1, x0:x1] += strength * math.exp(-haze_beta * d) * g[..., None] * c
+    return img
+
+
 def render(scene: RayScene, lidar2img: np.ndarray, pose, mount_height: float, p: WeatherPreset,
            rng: np.random.Generator, spec: CameraSpec = CameraSpec()) -> np.ndarray:
     """(H, W, 3) uint8 RGB image of the scene (vehicles already set in `scene`)."""
@@ -141,5 +191,11 @@ def render(scene: RayScene, lidar2img: np.ndarray, pose, mount_height: float, p:
     srgb = np.clip(col * exposure, 0, 1) ** (1 / 2.2)
     small = Image.fromarray((srgb.reshape(h, w, 3) * 255 + 0.5).astype(np.uint8), "RGB")
     img = small.resize((spec.width, spec.height), Image.BILINEAR)
-    img = _streaks(img, rain_rate_mmh(p), time_of_day(p) == "Night", rng)
+    night = time_of_day(p) == "Night"
+    strength = 1.0 if night else (0.4 if p.precipitation > 0 else 0.0)
+    if strength > 0:
+        glow = add_light_glows(np.asarray(img, dtype=np.float64) / 255.0, scene, lidar2img, pose, cam_w,
+                               mount_height, strength, haze_beta(p))
+        img = Image.fromarray((np.clip(glow, 0, 1) * 255 + 0.5).astype(np.uint8), "RGB")
+    img = _streaks(img, rain_rate_mmh(p), night, rng)
     return np.asarray(img)

@@ -92,9 +92,11 @@ class RayScene:
         self._dyn_material = np.zeros(0, np.int64)
         self._dyn_actor = np.zeros(0, np.int64)
         self.vehicle_triangles: list[np.ndarray] = []
+        self.vehicles: list[Vehicle] = []
 
     def set_vehicles(self, vehicles: list[Vehicle]) -> None:
         """Replace the dynamic scene with these vehicles (actor id = list index)."""
+        self.vehicles = list(vehicles)
         tris, mats, actors = [], [], []
         for i, v in enumerate(vehicles):
             t, m = world_triangles(v)
