@@ -112,6 +112,7 @@ def data_figure(stats: pd.DataFrame) -> Figure:
     xs = np.arange(len(stats))
     ax.bar(xs, stats["n_points_mean"], color="#7f7f7f", label="points per frame (mean)")
     ax.set_ylabel("points per frame")
+    ax.set_ylim(0, 1.3 * max(float(stats["n_points_mean"].max()), 1.0))  # room for the legends
     ax.set_xticks(xs, stats["weather"], rotation=45, ha="right", fontsize=8)
     ranges = [c for c in ("mean_range_m_mean", "max_range_m_mean") if c in stats.columns]
     if ranges:

@@ -149,14 +149,15 @@ def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
     if df.empty:
         return Markup("<p class='empty'>(not available in this run)</p>")
     return Markup(df.to_html(index=False, na_rep="–", border=0, classes="tbl",
-                             float_format=lambda v, d=decimals: f"{v:.{d}f}"))
+                             float_format=lambda v, d=decimals: tables.fmt_float(v, d)))
 
 
 def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, str]:
     """(report.md, index.html) text."""
     sections = [s for s in _sections(run, t) if any(not df.empty for _, df, _ in s.tables) or
                 any(f in figs for f in s.figures)]
-    ctx = {"overview": _overview(run), "sections": sections, "captions": {k: v[0] for k, v in figs.items()}}
+    ctx = {"overview": _overview(run), "sections": sections, "captions": {k: v[0] for k, v in figs.items()},
+           "models_table": t["overview"]}
     env_md = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=False,
                          keep_trailing_newline=True)
     md = env_md.get_template("report.md.j2").render(**ctx, images=md_links, md=tables.to_markdown)

@@ -208,9 +208,11 @@ def sotif_view(data_dir, predictions_dir, split: str = "test", threshold: float 
     ids = _split_ids(data_dir, split)
     if not ids:
         raise KittiError(data_dir / "ImageSets" / f"{split}.txt", "no frames in the split")
-    frames = meta[meta["frame_id"].isin(set(ids))].sort_values("scenario_time_s", kind="stable")
+    frames = meta[meta["frame_id"].isin(set(ids))]
+    weathers = pd.unique(frames["weather"])  # data set order
+    frames = frames.sort_values("scenario_time_s", kind="stable")
     out = {}
-    for weather in pd.unique(frames["weather"]):
+    for weather in weathers:
         row = _weather_row(data_dir, predictions_dir, frames[frames["weather"] == weather], threshold)
         out[str(weather)] = {"threshold": float(threshold), "threshold_source": source, **row}
     return out

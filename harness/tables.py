@@ -84,16 +84,17 @@ def load_run(run_dir) -> Run:
 
 # ----------------------------------------------------------------------------- paper tables
 def kitti_ap_table(results: dict) -> pd.DataFrame:
-    """The paper's AP table: per model, metric (bbox/BEV/3D/AOS) and AP11/AP40 at IoU 0.7."""
+    """The paper's AP table: per model and metric (bbox/BEV/3D/AOS), AP11 and AP40 at IoU 0.7 for
+    easy/moderate/hard (columns ``AP11 easy`` ... ``AP40 hard``)."""
+    cols = [f"AP{kind[1:]} {d}" for kind in ("R11", "R40") for d in DIFFS]
     rows = []
     for name, res in results.items():
         for metric in ("bbox", "bev", "3d", "aos"):
-            if metric not in res["kitti"]:
-                continue
-            for kind in ("R11", "R40"):
-                v = res["kitti"][metric]["0.7"][kind]
-                rows.append({"model": name, "metric": metric, "ap": f"AP{kind[1:]}", **{d: v[d] for d in DIFFS}})
-    return pd.DataFrame(rows, columns=["model", "metric", "ap", *DIFFS])
+            if metric in res["kitti"]:
+                v = res["kitti"][metric]["0.7"]
+                rows.append({"model": name, "metric": metric,
+                             **{f"AP{kind[1:]} {d}": v[kind][d] for kind in ("R11", "R40") for d in DIFFS}})
+    return pd.DataFrame(rows, columns=["model", "metric", *cols])
 
 
 def recall_table(results: dict) -> pd.DataFrame:
@@ -148,7 +149,9 @@ def headline_matrix(long: pd.DataFrame, column: str = "weather", value: str = "a
         return pd.DataFrame()
     order = list(dict.fromkeys(long[column]))
     models = list(dict.fromkeys(long["model"]))
-    return long.pivot(index=column, columns="model", values=value).reindex(index=order, columns=models)
+    wide = long.pivot(index=column, columns="model", values=value).reindex(index=order, columns=models)
+    wide.columns.name = None
+    return wide
 
 
 def headline_with_ci(long: pd.DataFrame, column: str = "weather") -> pd.DataFrame:
@@ -205,8 +208,9 @@ def relative_table(matrix: pd.DataFrame) -> pd.DataFrame:
 
 
 # ----------------------------------------------------------------------------- SOTIF, runtime, data
-def sotif_table(summary: dict) -> pd.DataFrame:
-    """Long table: per (weather, model) the first detection of the slow car vs the stopping distance."""
+def sotif_table(summary: dict, order=None) -> pd.DataFrame:
+    """Long table: per (weather, model) the first detection of the slow car vs the stopping distance;
+    weathers in ``order`` first (e.g. the data set's), then any others."""
     rows = []
     for name, m in summary["models"].items():
         for weather, r in (m.get("sotif") or {}).items():
@@ -217,7 +221,9 @@ def sotif_table(summary: dict) -> pd.DataFrame:
                          "stopping_distance_m": r.get("stopping_distance_m"), "verdict": verdict})
     cols = ["weather", "model", "threshold", "detected", "distance_m", "time_after_lane_change_s",
             "stopping_distance_m", "verdict"]
-    return pd.DataFrame(rows, columns=cols)
+    df = pd.DataFrame(rows, columns=cols)
+    rank = {w: i for i, w in enumerate(dict.fromkeys([*(order or []), *df["weather"]]))}
+    return df.sort_values("weather", key=lambda c: c.map(rank), kind="stable").reset_index(drop=True)
 
 
 def sotif_matrix(long: pd.DataFrame) -> pd.DataFrame:
@@ -233,6 +239,7 @@ def sotif_matrix(long: pd.DataFrame) -> pd.DataFrame:
         return f"{r['verdict']} {r['distance_m']:.1f} m / {r['time_after_lane_change_s']:.1f} s"
     wide = long.assign(cell=long.apply(cell, axis=1)).pivot(index="weather", columns="model", values="cell")
     wide = wide.reindex(index=list(dict.fromkeys(long["weather"])), columns=list(dict.fromkeys(long["model"])))
+    wide.columns.name = None
     need = long.groupby("weather", sort=False)["stopping_distance_m"].max()
     wide.insert(0, "stopping_distance_m", need.reindex(wide.index))
     return wide.rename_axis("weather").reset_index()
@@ -293,14 +300,37 @@ def stage_table(summary: dict) -> pd.DataFrame:
     return pd.DataFrame([{"stage": k, "seconds": v} for k, v in st.items()], columns=["stage", "seconds"])
 
 
+def overview_table(run: Run, t: dict) -> pd.DataFrame:
+    """One row per model: what it is and its key numbers (overall headline AP, mRR, SOTIF passes, latency)."""
+    rob = t["robustness"].set_index("model") if not t["robustness"].empty else pd.DataFrame()
+    rt = t["runtime"].set_index("model") if not t["runtime"].empty else pd.DataFrame()
+    so = t["sotif"]
+    rows = []
+    for name, m in run.summary["models"].items():
+        res = run.results[name]
+        judged = so[(so["model"] == name) & (so["verdict"] != "n/a")] if not so.empty else so
+        rows.append({"model": name, "architecture": m.get("architecture"),
+                     "stages": "two" if m.get("two_stage") else "one", "camera": bool(m.get("uses_camera")),
+                     "AP3D": _get(res, "headline", "3d", "0.7"), "AP BEV": _get(res, "headline", "bev", "0.7"),
+                     "mRR": rob["mRR"].get(name, np.nan) if len(rob) else np.nan,
+                     "SOTIF pass": f"{int((judged['verdict'] == 'pass').sum())}/{len(judged)}" if len(judged) else None,
+                     "ORT p50 ms": rt["ort_p50_ms"].get(name, np.nan) if len(rt) else np.nan})
+    return pd.DataFrame(rows)
+
+
 # ----------------------------------------------------------------------------- output
+def fmt_float(v: float, digits: int) -> str:
+    """Fixed ``digits`` decimals; tiny non-zero values (agreement errors) in scientific notation."""
+    return f"{v:.1e}" if 0 < abs(v) < 0.5 * 10.0 ** -digits else f"{v:.{digits}f}"
+
+
 def _cell(v, digits: int) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return "–"
     if isinstance(v, (bool, np.bool_)):
         return "yes" if v else "no"
     if isinstance(v, (float, np.floating)):
-        return f"{v:.{digits}f}"
+        return fmt_float(v, digits)
     return str(v).replace("|", "\\|")
 
 
@@ -318,8 +348,8 @@ def build_tables(run: Run) -> dict[str, pd.DataFrame]:
     """Every table of the report, by name (empty DataFrames for parts the run does not have)."""
     weather = group_table(run.results, "weather")
     matrix = headline_matrix(weather)
-    sotif = sotif_table(run.summary)
-    return {
+    sotif = sotif_table(run.summary, order=list(matrix.index))
+    t = {
         "kitti_ap": kitti_ap_table(run.results), "recall": recall_table(run.results),
         "weather_headline": headline_with_ci(weather), "weather_detail": weather,
         "robustness": robustness_table(matrix, run.meta), "relative_ap": relative_table(matrix),
@@ -328,6 +358,7 @@ def build_tables(run: Run) -> dict[str, pd.DataFrame]:
         "sotif": sotif, "sotif_matrix": sotif_matrix(sotif), "runtime": runtime_table(run.summary),
         "data_by_weather": data_table(run.meta, run.frame_stats), "stages": stage_table(run.summary),
     }
+    return {"overview": overview_table(run, t), **t}
 
 
 def write_tables(run_dir, run: Run | None = None) -> dict[str, pd.DataFrame]:

@@ -41,9 +41,10 @@ def test_kitti_and_recall_tables():
     rng = np.random.default_rng(0)
     results = {"one": fake_result(rng), "two": fake_result(rng, two_stage=True)}
     ap = tables.kitti_ap_table(results)
-    assert len(ap) == 2 * 4 * 2
-    row = ap[(ap.model == "two") & (ap.metric == "bev") & (ap.ap == "AP40")].iloc[0]
-    assert row["moderate"] == results["two"]["kitti"]["bev"]["0.7"]["R40"]["moderate"]
+    assert len(ap) == 2 * 4 and ap.columns[2:].tolist() == [f"AP{n} {d}" for n in (11, 40) for d in ("easy", "moderate", "hard")]
+    for r in ap.itertuples(index=False):
+        ref = results[r.model]["kitti"][r.metric]["0.7"]
+        assert list(r[2:]) == [ref[k][d] for k in ("R11", "R40") for d in ("easy", "moderate", "hard")]
     rec = tables.recall_table(results)
     assert rec["model"].tolist() == ["two"]
     assert rec.iloc[0]["roi@0.5"] == pytest.approx(60.0) and rec.iloc[0]["rcnn@0.3"] == pytest.approx(90.0)
@@ -113,6 +114,7 @@ def test_sotif_and_runtime_tables():
     s = _summary(openvino=True)
     long = tables.sotif_table(s)
     assert long["verdict"].tolist() == ["pass", "FAIL", "n/a"]
+    assert tables.sotif_table(s, order=["WetNoon", "ClearNoon"])["weather"].tolist() == ["WetNoon", "ClearNoon", "HardRainNight"]
     wide = tables.sotif_matrix(long).set_index("weather")
     assert wide.loc["ClearNoon", "a"] == "pass 52.1 m / 0.5 s" and wide.loc["HardRainNight", "a"] == "FAIL never"
     assert wide.loc["WetNoon", "a"] == "n/a"
@@ -142,6 +144,7 @@ def test_markdown_cells():
     df = pd.DataFrame({"name": ["a|b", "c"], "v": [1.23456, np.nan], "ok": [True, False]})
     md = tables.to_markdown(df, digits=1).splitlines()
     assert md[0] == "| name | v | ok |" and md[2] == "| a\\|b | 1.2 | yes |" and md[3] == "| c | – | no |"
+    assert tables.fmt_float(3e-6, 2) == "3.0e-06" and tables.fmt_float(0.0, 2) == "0.00" and tables.fmt_float(0.006, 2) == "0.01"
     assert tables.to_markdown(pd.DataFrame()) == "_(no data)_\n"
 
 
@@ -175,3 +178,6 @@ def test_write_tables_writes_three_formats(tmp_path):
         assert len(json.loads((tmp_path / "tables" / f"{name}.json").read_text())) == len(out[name])
         assert (tmp_path / "tables" / f"{name}.md").read_text().startswith("|")
     assert not list((tmp_path / "tables").glob(".*.tmp"))
+    ov = out["overview"].iloc[0]
+    assert ov["AP3D"] == 50.0 and ov["SOTIF pass"] == "1/2" and ov["ORT p50 ms"] == 12.0 and ov["stages"] == "one"
+    assert ov["mRR"] == pytest.approx(out["robustness"].iloc[0]["mRR"])
