@@ -79,14 +79,16 @@ def make_run(root, models=(("alpha", 0.1, False), ("beta", 0.6, True)), sotif_co
 
 
 @pytest.fixture(scope="module")
-def run_dir(tmp_path_factory):
-    return make_run(tmp_path_factory.mktemp("run"))
+def rendered(tmp_path_factory):
+    """A rendered run: (run directory, index.html bytes)."""
+    root = make_run(tmp_path_factory.mktemp("run"))
+    index = report.render(root)
+    assert index == root / "index.html"
+    return root, index.read_bytes()
 
 
-def test_render_writes_a_self_contained_report(run_dir):
-    index = report.render(run_dir)
-    html = index.read_text()
-    assert index == run_dir / "index.html"
+def test_render_writes_a_self_contained_report(rendered):
+    html = rendered[1].decode("utf-8")
     assert not re.search(r"https?://|<script|<link", html)
     srcs = re.findall(r'src="([^"]*)"', html)
     assert srcs and all(s.startswith("data:image/png;base64,") for s in srcs)
@@ -97,8 +99,8 @@ def test_render_writes_a_self_contained_report(run_dir):
     assert 'id="sotif"' in html and "Recall of two-stage models" in html
 
 
-def test_report_md_links_written_figures_and_tables(run_dir):
-    report.render(run_dir)
+def test_report_md_links_written_figures_and_tables(rendered):
+    run_dir = rendered[0]
     md = (run_dir / "report.md").read_text()
     links = re.findall(r"\]\((figures/[^)]+)\)", md)
     assert links and all((run_dir / link).is_file() for link in links)
@@ -113,8 +115,8 @@ def test_report_md_links_written_figures_and_tables(run_dir):
         assert f"{row['headline']['3d']['0.7']:.1f} [" in md
 
 
-def test_render_is_deterministic(run_dir):
-    first = report.render(run_dir).read_bytes()
+def test_render_is_deterministic(rendered):
+    run_dir, first = rendered
     assert report.render(run_dir).read_bytes() == first
 
 
