@@ -21,6 +21,7 @@ from simulator.raycast import RayScene
 from simulator.weather import WeatherPreset, fog_extinction, rain_rate_mmh, road_water_cover, time_of_day
 
 SUN_AZIMUTH = math.radians(150.0)  # world frame, CARLA's -1 means "unset"
+SKY_HAZE_DISTANCE = 200.0  # m of haze in front of the sky
 HEADLIGHT_RGB = np.array([1.0, 0.95, 0.8])
 TAILLIGHT_RGB = np.array([1.0, 0.08, 0.04])
 
@@ -83,8 +84,7 @@ def _light(p: WeatherPreset) -> tuple[float, float]:
     return 1.6 * sun ** 0.5 if sun > 0 else 0.0, ambient
 
 
-def shade(hits, dirs_w: np.ndarray, cam_w: np.ndarray, ego_fwd: np.ndarray, p: WeatherPreset,
-          phase: np.ndarray) -> np.ndarray:
+def shade(hits, dirs_w: np.ndarray, ego_fwd: np.ndarray, p: WeatherPreset, phase: np.ndarray) -> np.ndarray:
     """(N, 3) linear RGB of camera rays given their hits."""
     hit = np.isfinite(hits.t)
     t = np.where(hit, hits.t, 0.0)
@@ -105,7 +105,7 @@ def shade(hits, dirs_w: np.ndarray, cam_w: np.ndarray, ego_fwd: np.ndarray, p: W
         fres = effects.fresnel_reflectance(np.abs(np.sum(dirs_w[road] * hits.normal[road], 1)))[:, None]
         col[road] = col[road] * (1 - 0.45 * cover) + cover * np.clip(fres * 1.5, 0, 1) * sky_colour(refl, p, phase)
     col[~hit] = sky_colour(dirs_w[~hit], p, phase)
-    haze = np.exp(-haze_beta(p) * np.where(hit, t, 1e4))[:, None]
+    haze = np.exp(-haze_beta(p) * np.where(hit, t, SKY_HAZE_DISTANCE))[:, None]
     horizon = sky_colour(np.tile([[1.0, 0.0, 0.02]], (1, 1)), p, phase)[0]
     return col * haze + horizon * (1 - haze)
 
@@ -186,7 +186,7 @@ def render(scene: RayScene, lidar2img: np.ndarray, pose, mount_height: float, p:
     cam_w = rot @ centre + np.array([pose.x, pose.y, mount_height])
     hits = scene.cast(cam_w, dirs_w)
     phase = rng.uniform(0, 2 * np.pi, 6)
-    col = shade(hits, dirs_w, cam_w, rot[:, 0], p, phase)
+    col = shade(hits, dirs_w, rot[:, 0], p, phase)
     exposure = 1.0 if time_of_day(p) != "Night" else 2.5
     srgb = np.clip(col * exposure, 0, 1) ** (1 / 2.2)
     small = Image.fromarray((srgb.reshape(h, w, 3) * 255 + 0.5).astype(np.uint8), "RGB")

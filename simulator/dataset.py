@@ -10,7 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing as mp
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,7 +48,6 @@ class GenerateConfig:
     sotif: SotifConfig = SotifConfig()
     train: TrainConfig = TrainConfig()
     generator_version: str = GENERATOR_VERSION
-    extra: dict = field(default_factory=dict)
 
     def as_dict(self) -> dict:
         return json.loads(json.dumps(asdict(self)))
@@ -151,14 +150,20 @@ def _write_outputs(root: Path, cfg: GenerateConfig, rows: list[dict]) -> None:
 
 
 def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathers: list[str] | None = None,
-             seed: int = 0, workers: int = 1, lidar_model: str = "physics", progress: bool = True) -> Path:
-    """Write the data set to `out` and return `out`. ValueError on invalid arguments."""
+             seed: int = 0, workers: int = 1, lidar_model: str = "physics", progress: bool = True,
+             lidar_spec: LidarSpec | None = None) -> Path:
+    """Write the data set to `out` and return `out`. ValueError on invalid arguments.
+
+    `lidar_spec` replaces the HDL-64E-like default sensor (its `model` is then set from
+    `lidar_model`, "carla" turning it into CARLA's weather-blind ray-cast LiDAR).
+    """
     weathers = _check_args(preset, frames, weathers, workers, lidar_model)
     if frames is None:
         frames = SOTIF_FRAMES if preset == "sotif" else TRAIN_FRAMES
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
-    lidar = LidarSpec() if lidar_model == "physics" else carla_spec()
+    base = lidar_spec if lidar_spec is not None else LidarSpec()
+    lidar = replace(base, model="physics") if lidar_model == "physics" else carla_spec(base)
     cfg = GenerateConfig(preset, int(frames), weathers, int(seed), lidar)
     root = Path(out)
     if root.exists() and not root.is_dir():

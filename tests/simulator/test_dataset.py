@@ -59,8 +59,15 @@ def test_same_seed_same_bytes_and_resume(sotif_set, tmp_path):
     assert json.loads((again / "meta" / "dataset.json").read_text())["files"] == a
 
 
-def test_training_scenes(tmp_path):
-    out = generate(tmp_path / "t", "train", frames=2, seed=1, progress=False)
+def test_training_scenes_with_another_sensor(tmp_path):
+    vlp16 = LidarSpec(name="VLP-16-like", elevations_deg=tuple(np.linspace(15.0, -15.0, 16)), azimuth_step_deg=0.2,
+                      max_range=100.0)
+    out = generate(tmp_path / "t", "train", frames=2, seed=1, progress=False, lidar_spec=vlp16)
+    assert json.loads((out / "meta" / "dataset.json").read_text())["sensors"]["lidar"]["name"] == "VLP-16-like"
+    pts = kitti.read_points(kitti.frame_path(out, "velodyne", "000000"))
+    elevation = np.rad2deg(np.arctan2(pts[:, 2], np.linalg.norm(pts[:, :2], axis=1)))
+    assert np.abs(elevation[:, None] - np.linspace(15.0, -15.0, 16)[None]).min(1).max() < 0.5
+    assert np.linalg.norm(pts[:, :3], axis=1).max() <= 100.0
     meta = kitti.read_frames_meta(out / "meta" / "frames.csv")
     assert set(meta["weather"]) <= {"ClearNoon", "CloudyNoon"} and set(meta["scenario"]) == {"train"}
     assert meta["lane_change_time_s"].isna().all() and (meta["slow_car_label_index"] == -1).all()
