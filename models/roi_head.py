@@ -7,6 +7,8 @@
 - ``RefineHead``: shared MLP -> IoU-guided confidence logit and box residuals.
 - ``refine_loss``: IoU-guided scoring (binary cross-entropy against a ramp of the RoI IoU),
   smooth-L1 residuals and the corner loss on foreground RoIs.
+- ``propose``: anchor-RPN proposals (decode + rotated NMS in the graph) that enter stage 2.
+- ``finalize``: refined boxes of every RoI, then score threshold + NMS for the final output.
 """
 from __future__ import annotations
 
@@ -20,6 +22,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from harness.boxes import iou_3d
+from models.anchor_head import AnchorHead
+from models.nms import select_detections
 
 
 @dataclass(frozen=True)
@@ -188,3 +192,34 @@ def refine_loss(logit: Tensor, deltas: Tensor, targets: RoITargets,
     else:
         reg = corner = deltas.sum() * 0.0
     return {"rcnn_score": score, "rcnn_reg": reg, "rcnn_corner": corner}
+
+
+@dataclass(frozen=True)
+class ProposalConfig:
+    nms_pre: int = 256  # top anchors by RPN score that enter the proposal NMS
+    nms_iou: float = 0.7  # rotated BEV IoU of the proposal NMS
+    rois: int = 32  # proposals kept (stage-2 inputs)
+
+
+def propose(head: AnchorHead, feats: Tensor, cfg: ProposalConfig) -> tuple[Tensor, Tensor]:
+    """Stage-1 proposals from an anchor head: feats (1, C, H, W) -> rois (K, 7), scores (K,)."""
+    cls, box, dirs = head(feats)
+    boxes = head.decode(box, dirs)  # (A, 7)
+    return select_detections(boxes, torch.sigmoid(cls), -1.0, cfg.nms_pre, cfg.nms_iou, cfg.rois)
+
+
+@dataclass(frozen=True)
+class OutputConfig:
+    score_thresh: float = 0.1  # on the IoU-guided stage-2 score
+    nms_iou: float = 0.1  # rotated BEV IoU of the final NMS
+    max_out: int = 100
+    nms_pre: int = 512  # at least the number of RoIs: every refined box may enter the NMS
+
+
+def finalize(rois: Tensor, logit: Tensor, deltas: Tensor,
+             cfg: OutputConfig) -> tuple[Tensor, Tensor, Tensor]:
+    """rois (K, 7), logit (K,), deltas (K, 7) -> boxes (M, 7), scores (M,), rcnn_boxes (K, 7)."""
+    rcnn_boxes = decode_canonical(deltas, rois)  # (K, 7)
+    boxes, scores = select_detections(rcnn_boxes, torch.sigmoid(logit), cfg.score_thresh,
+                                      cfg.nms_pre, cfg.nms_iou, cfg.max_out)
+    return boxes, scores, rcnn_boxes
