@@ -16,7 +16,7 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
 from simulator import generate
-from simulator.dataset import GenerateConfig, _run_job, plan_jobs
+from simulator.dataset import GenerateConfig, run_job, plan_jobs
 from simulator.lidar import LidarSpec, ray_directions, scan
 from simulator.raycast import RayScene
 from simulator.road import RoadConfig
@@ -64,10 +64,10 @@ def bench_frames(frames: int) -> None:
     root = Path(tempfile.mkdtemp(prefix="bench_sim_"))
     try:
         (root / "meta" / "frames").mkdir(parents=True)
-        _run_job((root, cfg, jobs[0], cfg.digest()))  # world build, caches
+        run_job((root, cfg, jobs[0], cfg.digest()))  # world build, caches
         t0 = time.perf_counter()
         for job in jobs[1:]:
-            _run_job((root, cfg, job, cfg.digest()))
+            run_job((root, cfg, job, cfg.digest()))
         dt = time.perf_counter() - t0
     finally:
         shutil.rmtree(root)

@@ -109,7 +109,7 @@ def _record_path(root: Path, frame_id: str) -> Path:
 
 
 def _resumable(root: Path, job: FrameJob, digest: str) -> dict | None:
-    """The stored meta row if the frame's record, config and file hashes all match."""
+    """The stored frame record if its config and file hashes all match the files on disk."""
     rec_path = _record_path(root, job.frame_id)
     try:
         rec = json.loads(rec_path.read_text())
@@ -121,31 +121,34 @@ def _resumable(root: Path, job: FrameJob, digest: str) -> dict | None:
         p = root / rel
         if not p.is_file() or sha256(p) != digest_file:
             return None
-    return rec["row"]
+    return rec
 
 
-def _run_job(args) -> dict:
+def run_job(args) -> dict:
+    """Make (or resume) one frame; returns its record {"config", "row", "files": {path: sha256}}."""
     root, cfg, job, digest = args
-    row = _resumable(root, job, digest)
-    if row is not None:
-        return row
+    rec = _resumable(root, job, digest)
+    if rec is not None:
+        return rec
     row, files = make_frame(root, cfg, job)
     rec = {"config": digest, "row": row, "files": {str(p.relative_to(root)): sha256(p) for p in files}}
     kitti.atomic_write_text(_record_path(root, job.frame_id), json.dumps(rec, indent=1, sort_keys=True))
-    return row
+    return rec
 
 
-def _write_outputs(root: Path, cfg: GenerateConfig, rows: list[dict]) -> None:
-    df = pd.DataFrame(sorted(rows, key=lambda r: r["frame_id"]), columns=list(ROW_COLUMNS))
-    for split in ("train", "val", "test"):
-        kitti.write_image_set(root / "ImageSets" / f"{split}.txt", df.loc[df["split"] == split, "frame_id"].tolist())
-    kitti.write_frames_meta(root / "meta" / "frames.csv", df)
-    files = sorted(p for p in root.rglob("*") if p.is_file() and p.name != "dataset.json" and ".tmp" not in p.name)
+def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None:
+    rows = sorted((r["row"] for r in records), key=lambda r: r["frame_id"])
+    df = pd.DataFrame(rows, columns=list(ROW_COLUMNS))
+    written = [kitti.write_image_set(root / "ImageSets" / f"{split}.txt",
+                                     df.loc[df["split"] == split, "frame_id"].tolist()) for split in ("train", "val", "test")]
+    written.append(kitti.write_frames_meta(root / "meta" / "frames.csv", df))
+    files = {rel: h for r in records for rel, h in r["files"].items()}
+    files.update({str(p.relative_to(root)): sha256(p) for p in written})
     meta = {"generator": "sotif-bench simulator", "generator_version": cfg.generator_version, "seed": cfg.seed,
             "config": cfg.as_dict(), "config_sha256": cfg.digest(), "sensors": {"lidar": cfg.lidar.as_dict(),
             "camera": cfg.camera.as_dict()}, "n_frames": len(df),
             "splits": {s: int((df["split"] == s).sum()) for s in ("train", "val", "test")},
-            "files": {str(p.relative_to(root)): sha256(p) for p in files}}
+            "files": dict(sorted(files.items()))}
     kitti.atomic_write_text(root / "meta" / "dataset.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
 
 
@@ -172,18 +175,18 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     digest = cfg.digest()
     jobs = [(root, cfg, job, digest) for job in plan_jobs(cfg)]
     bar = tqdm(total=len(jobs), desc=f"simulate {preset}", unit="frame", disable=not progress)
-    rows = []
+    records = []
     if workers == 1:
         for args in jobs:
-            rows.append(_run_job(args))
+            records.append(run_job(args))
             bar.update()
     else:
         chunk = max(1, len(jobs) // (workers * 8))
         method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
         with mp.get_context(method).Pool(workers) as pool:
-            for row in pool.imap_unordered(_run_job, jobs, chunksize=chunk):
-                rows.append(row)
+            for rec in pool.imap_unordered(run_job, jobs, chunksize=chunk):
+                records.append(rec)
                 bar.update()
     bar.close()
-    _write_outputs(root, cfg, rows)
+    _write_outputs(root, cfg, records)
     return root
