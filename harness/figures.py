@@ -106,23 +106,21 @@ def distance_figure(ap: pd.DataFrame, title: str) -> Figure:
 
 
 def data_figure(stats: pd.DataFrame) -> Figure:
-    """Per weather preset: mean points per frame (bars) and mean / max LiDAR range (lines)."""
-    fig = Figure(figsize=(11, 4.2), layout="constrained")
-    ax = fig.add_subplot()
-    xs = np.arange(len(stats))
-    ax.bar(xs, stats["n_points_mean"], color="#7f7f7f", label="points per frame (mean)")
-    ax.set_ylabel("points per frame")
-    ax.set_ylim(0, 1.3 * max(float(stats["n_points_mean"].max()), 1.0))  # room for the legends
-    ax.set_xticks(xs, stats["weather"], rotation=45, ha="right", fontsize=8)
+    """Per weather preset: mean points per frame (bars, top) and mean / max LiDAR range (lines, bottom)."""
     ranges = [c for c in ("mean_range_m_mean", "max_range_m_mean") if c in stats.columns]
+    fig = Figure(figsize=(11, 5.5 if ranges else 3.8), layout="constrained")
+    axes = fig.subplots(2 if ranges else 1, 1, sharex=True, squeeze=False)[:, 0]
+    xs = np.arange(len(stats))
+    axes[0].bar(xs, stats["n_points_mean"], color="#7f7f7f")
+    axes[0].set(ylabel="points per frame (mean)", title="SOTIF data per weather preset")
+    for c, style in zip(ranges, ("o-", "s--")):
+        axes[1].plot(xs, stats[c], style, color="#1f77b4", label=c.replace("_m_mean", "").replace("_", " "))
     if ranges:
-        ax2 = ax.twinx()
-        for c, style in zip(ranges, ("o-", "s--")):
-            ax2.plot(xs, stats[c], style, color="#1f77b4", label=c.replace("_mean", "").replace("_", " "))
-        ax2.set_ylabel("range (m)")
-        ax2.legend(loc="upper right", fontsize=8)
-    ax.legend(loc="upper left", fontsize=8)
-    ax.set_title("SOTIF data per weather preset")
+        axes[1].set(ylabel="point range (m), frame mean")
+        axes[1].legend(fontsize=8)
+    axes[-1].set_xticks(xs, stats["weather"], rotation=45, ha="right", fontsize=8)
+    for ax in axes:
+        ax.grid(True, axis="y", alpha=0.3)
     return fig
 
 

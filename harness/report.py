@@ -109,11 +109,12 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "recall at the proposals (RoI) and refined boxes (RCNN) for two-stage models.",
                 [("AP at IoU 0.7 (%)", t["kitti_ap"], 2), ("Recall of two-stage models (%)", t["recall"], 1)], []),
         Section("sotif", "SOTIF view: the slow car after the cut-out",
-                f"First detection of the slow car in the ego lane after the lane change (BEV IoU >= {c['iou_bev_min']}, "
-                "score >= the model's F1-optimal threshold on the val split), as distance to its rear face / time "
-                f"after the lane change, against the stopping distance dv*{c['t_react_s']:g} s + dv^2/(2*"
-                f"{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m (column stopping_distance_m).",
-                [("", t["sotif_matrix"], 1)], []),
+                f"First detection of the slow car in the ego lane after the fast car's lane change (BEV IoU >= "
+                f"{c['iou_bev_min']}, score >= the model's F1-optimal threshold on the val split). Each cell: verdict, "
+                "the distance to its rear face left at that moment if the ego had kept its closing speed dv from the "
+                "lane change (the simulated ego brakes on ground truth), vs the stopping distance "
+                f"dv*{c['t_react_s']:g} s + dv^2/(2*{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m, "
+                "and the time after the lane change.", [("", t["sotif_matrix"], 1)], []),
         Section("robustness", "Robustness",
                 "AP relative to each model's clean value (mean of ClearNoon and ClearSunset); mRR = mean relative "
                 "AP over the rain and wet presets (Robo3D); headline AP by time of day and precipitation class.",

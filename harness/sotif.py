@@ -2,10 +2,15 @@
 
 The SOTIF scenario (simulator.scenario): a fast car ahead of the ego changes lane and reveals a
 slow car in the ego lane. Per weather preset, this module finds the first test frame at or after
-the lane change in which a detector finds the slow car, and compares the distance at that moment
-with the distance the ego needs to brake to the slow car's speed:
+the lane change in which a detector finds the slow car, and compares the distance left at that
+moment with the distance the ego needs to brake to the slow car's speed:
 
     d_stop = dv * T_REACT_S + dv^2 / (2 * DECEL_MPS2) + MARGIN_M,  dv = ego speed - slow car speed
+
+The simulated ego's ACC reacts to the ground truth, so it brakes before any detector could tell it
+to. The verdict therefore takes distance d0 and closing speed dv0 at the first frame after the lane
+change and assumes the ego holds dv0 until the detection at time t: it passes when
+d0 - dv0 * (t - t0) >= d_stop(dv0).
 
 A frame counts as a detection when a predicted box with score >= the model's operating threshold
 has BEV IoU >= ``IOU_BEV_MIN`` with the slow car's ground-truth box (row ``slow_car_label_index``
@@ -154,15 +159,13 @@ def operating_threshold(data_dir, predictions_dir, split: str = "val") -> tuple[
 
 
 # ----------------------------------------------------------------------------- driver
-def _weather_row(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, threshold: float) -> dict:
-    """First detection of the slow car after the lane change in one weather's frames (time order)."""
-    t_lc = float(frames["lane_change_time_s"].iloc[0]) if len(frames) else float("nan")
-    after = frames[(frames["scenario_time_s"] >= t_lc - 1e-6) & (frames["slow_car_label_index"] >= 0)]
-    row = {"lane_change_time_s": None if math.isnan(t_lc) else t_lc, "n_frames_after_lane_change": int(len(after)),
-           "detected": False, "frame_id": None, "distance_m": None, "time_after_lane_change_s": None,
-           "closing_speed_mps": None, "stopping_distance_m": None, "pass": None}
-    if math.isnan(t_lc) or after.empty:
-        return row
+def gap_without_braking(d0: float, closing_speed_mps: float, dt_s: float) -> float:
+    """Distance left after ``dt_s`` seconds if the ego keeps closing in at the given speed from ``d0``."""
+    return d0 - max(closing_speed_mps, 0.0) * dt_s
+
+
+def _slow_car_track(data_dir: Path, predictions_dir: Path, after: pd.DataFrame, threshold: float):
+    """Per frame (time order): the slow car's GT box and whether the model detected it."""
     label_dir = frame_path(data_dir, "label_2", "0").parent
     hits, slow_boxes = [], []
     for fr in after.itertuples(index=False):
@@ -173,17 +176,37 @@ def _weather_row(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, th
         boxes, scores, _ = _lidar_labels(data_dir, predictions_dir, fr.frame_id, with_score=True)
         hits.append(slow_car_detected(boxes, scores, gt[k], threshold))
         slow_boxes.append(gt[k])
-    i = first_hit(hits)
-    at = after.iloc[0 if i is None else i]
-    dv = float(at["ego_speed_mps"] - at["slow_car_speed_mps"])
-    row.update(closing_speed_mps=dv, stopping_distance_m=stopping_distance(dv))
-    if i is None:
-        row["pass"] = False
+    return hits, slow_boxes
+
+
+def _weather_row(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, threshold: float) -> dict:
+    """First detection of the slow car after the lane change in one weather's frames (time order).
+
+    The simulated ego already brakes for the slow car (its ACC sees the ground truth), so the verdict
+    uses the situation at the first frame after the lane change: distance d0 and closing speed dv0 there,
+    the ego holding dv0 until the detection (``distance_if_no_braking_m``) against ``stopping_distance(dv0)``.
+    ``distance_m`` is the distance measured at the detection frame.
+    """
+    t_lc = float(frames["lane_change_time_s"].iloc[0]) if len(frames) else float("nan")
+    after = frames[(frames["scenario_time_s"] >= t_lc - 1e-6) & (frames["slow_car_label_index"] >= 0)]
+    row = {"lane_change_time_s": None if math.isnan(t_lc) else t_lc, "n_frames_after_lane_change": int(len(after)),
+           "detected": False, "frame_id": None, "distance_m": None, "distance_if_no_braking_m": None,
+           "time_after_lane_change_s": None, "distance_at_lane_change_m": None, "closing_speed_mps": None,
+           "stopping_distance_m": None, "pass": None}
+    if math.isnan(t_lc) or after.empty:
         return row
-    dist = rear_distance(slow_boxes[i])
-    row.update(detected=True, frame_id=str(at["frame_id"]), distance_m=dist,
-               time_after_lane_change_s=float(at["scenario_time_s"]) - t_lc)
-    row["pass"] = bool(dist >= row["stopping_distance_m"])
+    hits, slow_boxes = _slow_car_track(data_dir, predictions_dir, after, threshold)
+    ref = after.iloc[0]
+    dv0, d0, t0 = float(ref["ego_speed_mps"] - ref["slow_car_speed_mps"]), rear_distance(slow_boxes[0]), float(ref["scenario_time_s"])
+    row.update(distance_at_lane_change_m=d0, closing_speed_mps=dv0, stopping_distance_m=stopping_distance(dv0), **{"pass": False})
+    i = first_hit(hits)
+    if i is None:
+        return row
+    at = after.iloc[i]
+    t = float(at["scenario_time_s"])
+    row.update(detected=True, frame_id=str(at["frame_id"]), distance_m=rear_distance(slow_boxes[i]),
+               distance_if_no_braking_m=gap_without_braking(d0, dv0, t - t0), time_after_lane_change_s=t - t_lc)
+    row["pass"] = bool(row["distance_if_no_braking_m"] >= row["stopping_distance_m"])
     return row
 
 
@@ -192,9 +215,9 @@ def sotif_view(data_dir, predictions_dir, split: str = "test", threshold: float 
     """Per weather preset: first detection of the slow car after the lane change vs the stopping distance.
 
     ``{weather: {threshold, threshold_source, lane_change_time_s, n_frames_after_lane_change, detected,
-    frame_id, distance_m, time_after_lane_change_s, closing_speed_mps, stopping_distance_m, pass}}``.
-    ``stopping_distance_m`` uses the closing speed at the detection frame (at the first frame after
-    the lane change when never detected, then ``pass`` is False); ``pass`` is None without a lane change.
+    frame_id, distance_m, distance_if_no_braking_m, time_after_lane_change_s, distance_at_lane_change_m,
+    closing_speed_mps, stopping_distance_m, pass}}`` (see ``_weather_row``); never detected -> ``pass``
+    False; no lane change in the data -> ``pass`` None.
     ``val_predictions_dir`` (default ``predictions_dir``) holds the val split's result files.
     """
     data_dir, predictions_dir = Path(data_dir), Path(predictions_dir)

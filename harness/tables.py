@@ -208,26 +208,27 @@ def relative_table(matrix: pd.DataFrame) -> pd.DataFrame:
 
 
 # ----------------------------------------------------------------------------- SOTIF, runtime, data
+SOTIF_COLUMNS = ["weather", "model", "threshold", "detected", "time_after_lane_change_s", "distance_m",
+                 "distance_at_lane_change_m", "closing_speed_mps", "distance_if_no_braking_m", "stopping_distance_m",
+                 "verdict"]
+
+
 def sotif_table(summary: dict, order=None) -> pd.DataFrame:
-    """Long table: per (weather, model) the first detection of the slow car vs the stopping distance;
-    weathers in ``order`` first (e.g. the data set's), then any others."""
+    """Long table: per (weather, model) the first detection of the slow car vs the stopping distance
+    (``harness.sotif`` fields); weathers in ``order`` first (e.g. the data set's), then any others."""
     rows = []
     for name, m in summary["models"].items():
         for weather, r in (m.get("sotif") or {}).items():
             verdict = "n/a" if r.get("pass") is None else ("pass" if r["pass"] else "FAIL")
-            rows.append({"weather": weather, "model": name, "threshold": r.get("threshold"),
-                         "detected": r.get("detected"), "distance_m": r.get("distance_m"),
-                         "time_after_lane_change_s": r.get("time_after_lane_change_s"),
-                         "stopping_distance_m": r.get("stopping_distance_m"), "verdict": verdict})
-    cols = ["weather", "model", "threshold", "detected", "distance_m", "time_after_lane_change_s",
-            "stopping_distance_m", "verdict"]
-    df = pd.DataFrame(rows, columns=cols)
+            rows.append({**{c: r.get(c) for c in SOTIF_COLUMNS}, "weather": weather, "model": name, "verdict": verdict})
+    df = pd.DataFrame(rows, columns=SOTIF_COLUMNS)
     rank = {w: i for i, w in enumerate(dict.fromkeys([*(order or []), *df["weather"]]))}
     return df.sort_values("weather", key=lambda c: c.map(rank), kind="stable").reset_index(drop=True)
 
 
 def sotif_matrix(long: pd.DataFrame) -> pd.DataFrame:
-    """Weather x model: "pass 52.1 m / 0.5 s", "FAIL 12.0 m", "FAIL never" or "n/a"."""
+    """Weather x model cells: "pass 52.1 m vs 19.0 m, 0.5 s" (distance left at the detection without
+    braking vs stopping distance, time after the lane change), "FAIL never (19.0 m)" or "n/a"."""
     if long.empty:
         return pd.DataFrame()
 
@@ -235,13 +236,12 @@ def sotif_matrix(long: pd.DataFrame) -> pd.DataFrame:
         if r["verdict"] == "n/a":
             return "n/a"
         if not r["detected"]:
-            return f"{r['verdict']} never"
-        return f"{r['verdict']} {r['distance_m']:.1f} m / {r['time_after_lane_change_s']:.1f} s"
+            return f"{r['verdict']} never ({r['stopping_distance_m']:.1f} m)"
+        return (f"{r['verdict']} {r['distance_if_no_braking_m']:.1f} m vs {r['stopping_distance_m']:.1f} m, "
+                f"{r['time_after_lane_change_s']:.1f} s")
     wide = long.assign(cell=long.apply(cell, axis=1)).pivot(index="weather", columns="model", values="cell")
     wide = wide.reindex(index=list(dict.fromkeys(long["weather"])), columns=list(dict.fromkeys(long["model"])))
     wide.columns.name = None
-    need = long.groupby("weather", sort=False)["stopping_distance_m"].max()
-    wide.insert(0, "stopping_distance_m", need.reindex(wide.index))
     return wide.rename_axis("weather").reset_index()
 
 

@@ -17,7 +17,7 @@ def _write_frame(root, fid, gt_boxes, pred_boxes, pred_scores, pred_dir):
     kitti.write_labels(pred_dir / f"{fid}.txt", pred)
 
 
-def make_sotif(root, weathers, ego=25.0, slow=60 / 3.6, t_lc=1.0, n=5):
+def make_sotif(root, weathers, ego=25.0, slow=60 / 3.6, t_lc=1.0, n=5, ego_speeds=None):
     """Frames at t = 0, 0.5, ... per weather; the slow car (label row 1) approaches from 60 m.
 
     ``weathers`` maps name -> list of (score, dx) per frame: a prediction on the slow car shifted by dx.
@@ -35,7 +35,8 @@ def make_sotif(root, weathers, ego=25.0, slow=60 / 3.6, t_lc=1.0, n=5):
             shifted[0] += preds[k][1]
             _write_frame(root, fid, np.stack([OTHER, slow_box]), shifted, [preds[k][0]], pred_dir)
             rows.append({"frame_id": fid, "split": "test", "weather": w, "scenario_time_s": 0.5 * k,
-                         "lane_change_time_s": t_lc, "slow_car_label_index": 1, "ego_speed_mps": ego,
+                         "lane_change_time_s": t_lc, "slow_car_label_index": 1,
+                         "ego_speed_mps": ego if ego_speeds is None else ego_speeds[k],
                          "slow_car_speed_mps": slow})
     kitti.write_image_set(root / "ImageSets" / "test.txt", [r["frame_id"] for r in rows])
     kitti.write_frames_meta(root / "meta" / "frames.csv", pd.DataFrame(rows))
@@ -58,12 +59,15 @@ def test_detected_never_and_below_threshold(tmp_path):
     }
     root, pred = make_sotif(tmp_path / "d", weathers)
     view = sotif.sotif_view(root, pred, threshold=0.3)
-    need = sotif.stopping_distance(25.0 - 60 / 3.6)
+    dv = 25.0 - 60 / 3.6
     clear = view["ClearNoon"]
     assert clear["detected"] and clear["frame_id"] == "000003"
     assert clear["time_after_lane_change_s"] == pytest.approx(0.5)
     assert clear["distance_m"] == pytest.approx(60.0 - 12.0 - 4.75 / 2, abs=1e-3)
-    assert clear["stopping_distance_m"] == pytest.approx(need) and clear["pass"] is True
+    d0 = 60.0 - 8.0 - 4.75 / 2  # at the first frame after the lane change (t = 1.0 s)
+    assert clear["distance_at_lane_change_m"] == pytest.approx(d0, abs=1e-3)
+    assert clear["distance_if_no_braking_m"] == pytest.approx(d0 - dv * 0.5, abs=1e-3)
+    assert clear["stopping_distance_m"] == pytest.approx(dv + dv * dv / 8 + 2) and clear["pass"] is True
     assert clear["n_frames_after_lane_change"] == 3
     rain = view["HardRainNight"]
     assert not rain["detected"] and rain["distance_m"] is None and rain["pass"] is False
@@ -77,6 +81,20 @@ def test_fails_when_closing_too_fast(tmp_path):
     row = sotif.sotif_view(root, pred, threshold=0.5)["ClearNoon"]
     assert row["stopping_distance_m"] == pytest.approx(30.0 + 900 / 8 + 2)
     assert row["detected"] and row["pass"] is False
+
+
+def test_verdict_ignores_the_simulated_ego_braking(tmp_path):
+    # the data's ego slows to the slow car's speed by frame 4; the verdict keeps dv at the lane change
+    speeds = [25.0, 25.0, 25.0, 20.0, 60 / 3.6]
+    weathers = {"ClearNoon": [(0.9, 20.0)] * 4 + [(0.9, 0.0)]}
+    root, pred = make_sotif(tmp_path / "d", weathers, ego=None, ego_speeds=speeds)
+    row = sotif.sotif_view(root, pred, threshold=0.5)["ClearNoon"]
+    dv0 = 25.0 - 60 / 3.6
+    assert row["closing_speed_mps"] == pytest.approx(dv0)
+    assert row["stopping_distance_m"] == pytest.approx(sotif.stopping_distance(dv0))
+    d0 = 60.0 - 8.0 - 4.75 / 2
+    assert row["distance_if_no_braking_m"] == pytest.approx(d0 - dv0 * 1.0, abs=1e-3)
+    assert sotif.gap_without_braking(10.0, 4.0, 2.0) == 2.0 and sotif.gap_without_braking(10.0, -1.0, 2.0) == 10.0
 
 
 def test_no_lane_change_gives_no_verdict(tmp_path):

@@ -102,7 +102,8 @@ def _summary(sotif=True, openvino=False):
     if openvino:
         m["runtime"]["openvino"] = {"latency_ms_p50": 9.0, "agreement": {"same_boxes": 0.5}}
     if sotif:
-        m["sotif"] = {"ClearNoon": {"threshold": 0.4, "detected": True, "distance_m": 52.13, "time_after_lane_change_s": 0.5,
+        m["sotif"] = {"ClearNoon": {"threshold": 0.4, "detected": True, "distance_m": 55.0, "time_after_lane_change_s": 0.5,
+                                    "distance_if_no_braking_m": 52.13,
                                     "stopping_distance_m": 19.0, "pass": True},
                       "HardRainNight": {"threshold": 0.4, "detected": False, "distance_m": None,
                                         "time_after_lane_change_s": None, "stopping_distance_m": 19.0, "pass": False},
@@ -116,7 +117,8 @@ def test_sotif_and_runtime_tables():
     assert long["verdict"].tolist() == ["pass", "FAIL", "n/a"]
     assert tables.sotif_table(s, order=["WetNoon", "ClearNoon"])["weather"].tolist() == ["WetNoon", "ClearNoon", "HardRainNight"]
     wide = tables.sotif_matrix(long).set_index("weather")
-    assert wide.loc["ClearNoon", "a"] == "pass 52.1 m / 0.5 s" and wide.loc["HardRainNight", "a"] == "FAIL never"
+    assert wide.loc["ClearNoon", "a"] == "pass 52.1 m vs 19.0 m, 0.5 s"
+    assert wide.loc["HardRainNight", "a"] == "FAIL never (19.0 m)"
     assert wide.loc["WetNoon", "a"] == "n/a"
     rt = tables.runtime_table(s).iloc[0]
     assert rt["ort_p50_ms"] == 12.0 and rt["params_m"] == pytest.approx(1.5) and rt["ov_p50_ms"] == 9.0
