@@ -6,11 +6,13 @@ that a weather-blind sensor gives the same scan in every weather, the rest from 
 """
 from __future__ import annotations
 
+import io
 import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from harness import kitti
 from simulator.camera import render
@@ -90,6 +92,13 @@ def _num(v: float) -> float | None:
     return None if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 4)
 
 
+def encode_png(rgb: np.ndarray) -> bytes:
+    """PNG bytes of an (H, W, 3) uint8 image; fixed settings, no metadata (zlib level 1 for speed)."""
+    buf = io.BytesIO()
+    Image.fromarray(rgb, "RGB").save(buf, format="PNG", compress_level=1)
+    return buf.getvalue()
+
+
 def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:
     """Simulate and write one frame; returns its meta row and the files written."""
     scene = world_scene(cfg, job)
@@ -104,7 +113,7 @@ def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:
                    np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 2, job.index]), cfg.camera)
     labels, rows = frame_labels(scene, state.vehicles, state.pose, cfg.lidar.mount_height, calib, cfg.labels)
     files = [kitti.write_points(kitti.frame_path(root, "velodyne", job.frame_id), points),
-             kitti.write_image(kitti.frame_path(root, "image_2", job.frame_id), image),
+             kitti.atomic_write_bytes(kitti.frame_path(root, "image_2", job.frame_id), encode_png(image)),
              kitti.write_calib(kitti.frame_path(root, "calib", job.frame_id), calib),
              kitti.write_labels(kitti.frame_path(root, "label_2", job.frame_id), labels)]
     return _row(cfg, job, state, len(points), rows), files
