@@ -1,0 +1,335 @@
+"""PointRCNN (Shi et al., CVPR 2019): point-based two-stage detector on raw points.
+
+    points (N, 4) --range filter, FPS to num_points--> P0 (n0, 3) + intensity
+      --PointNet++ (MSG set abstraction x4, feature propagation x4)--> per-point features
+      --seg head--> foreground logit per point   --bin head--> one box proposal per point
+      --top-k by foreground score + BEV NMS--> rois (K, 7), roi_scores (K,)
+      --point RoI pooling, canonical transform--> (K, S, 3 + 2 + C)
+      --RoI PointNet++ (set abstraction x3)--> (K, C') --refine head--> IoU-guided score, residual
+      --decode--> rcnn_boxes (K, 7) --score threshold + BEV NMS--> boxes, scores
+
+Stage-1 boxes use PointRCNN's bin-based coding: x and y offsets from the point as a bin in
+[-loc_scope, loc_scope) plus a normalised in-bin residual, z as a plain offset, heading as a
+bin of 2*pi / heading_bins plus residual, size as a residual to the mean car size.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+from torch.nn import functional as F
+
+from harness.types import Sample
+from models.base import Detector
+from models.nms import nms_rotated
+from models.point_roi_pool import RoISetAbstraction, inside_rois, roi_point_pool
+from models.pointnet2 import FeaturePropagation, SetAbstraction, farthest_point_sample, shared_mlp
+from models.roi_head import (
+    RefineHead,
+    RoITargetConfig,
+    RoITargets,
+    decode_canonical,
+    refine_loss,
+    sample_rois,
+)
+
+
+@dataclass(frozen=True)
+class PointRCNNConfig:
+    point_cloud_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
+    num_points: int = 4096  # FPS sample of the cloud that every later stage works on
+    sa_npoints: tuple[int, ...] = (1024, 256, 64, 16)
+    sa_radii: tuple[tuple[float, ...], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
+    sa_nsamples: tuple[tuple[int, ...], ...] = ((16, 32), (16, 32), (16, 32), (16, 32))
+    sa_mlps: tuple = (((16, 16, 32), (16, 16, 32)), ((32, 32, 64), (32, 32, 64)),
+                      ((64, 64, 128), (64, 64, 128)), ((128, 128, 128), (128, 128, 128)))
+    fp_mlps: tuple[tuple[int, ...], ...] = ((64, 64), (128, 128), (128, 128), (128, 128))  # finest first
+    head_channels: int = 64  # hidden width of the segmentation and box heads
+    loc_scope: float = 3.0  # m, x/y bins cover [-scope, scope) around each point
+    loc_bin_size: float = 0.5  # m
+    heading_bins: int = 12
+    mean_size: tuple[float, float, float] = (4.5, 1.8, 1.6)  # l, w, h of a car, m
+    pre_nms: int = 512  # top-scoring points decoded before the proposal NMS
+    rois: int = 64  # proposals kept after NMS (stage-2 inputs)
+    proposal_nms_iou: float = 0.8  # BEV IoU
+    pool_samples: int = 128  # points pooled per RoI
+    pool_extra_width: float = 1.0  # m added to l, w, h of a RoI for pooling
+    rcnn_sa: tuple = ((32, 0.5, 16, (64, 64)), (8, 1.0, 16, (64, 128)), (None, 0.0, 0, (128, 128)))
+    refine_hidden: tuple[int, ...] = (128, 128)
+    score_thresh: float = 0.1
+    nms_iou: float = 0.1  # BEV IoU of the final NMS
+    max_detections: int = 50
+    seg_ignore_margin: float = 0.4  # m: points this close outside a car box are not negatives
+    seed: int = 0  # RoI sampling during training
+
+
+CONFIGS = {
+    "tiny": PointRCNNConfig(
+        num_points=256, sa_npoints=(64, 16), sa_radii=((2.0,), (6.0,)), sa_nsamples=((16,), (16,)),
+        sa_mlps=(((8, 16),), ((16, 32),)), fp_mlps=((16, 16), (32, 32)), head_channels=16,
+        pre_nms=64, rois=16, pool_samples=16, rcnn_sa=((8, 0.5, 8, (16, 16)), (None, 0.0, 0, (16, 32))),
+        refine_hidden=(32,), max_detections=20,
+    ),
+    "compact": PointRCNNConfig(),
+    "kitti": PointRCNNConfig(
+        point_cloud_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), num_points=16384,
+        sa_npoints=(4096, 1024, 256, 64), sa_radii=((0.1, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, 4.0)),
+        sa_mlps=(((16, 16, 32), (32, 32, 64)), ((64, 64, 128), (64, 96, 128)),
+                 ((128, 196, 256), (128, 196, 256)), ((256, 256, 512), (256, 384, 512))),
+        fp_mlps=((128, 128), (256, 256), (512, 512), (512, 512)), head_channels=256,
+        mean_size=(3.9, 1.6, 1.56), pre_nms=9000, rois=100, proposal_nms_iou=0.85,
+        pool_samples=512, rcnn_sa=((128, 0.2, 16, (128, 128, 128)), (32, 0.4, 16, (128, 128, 256)),
+                                    (None, 0.0, 0, (256, 256, 512))),
+        refine_hidden=(256, 256),
+    ),
+}
+
+
+# ---- bin-based box coding ------------------------------------------------------------------
+
+
+def _bin_counts(cfg: PointRCNNConfig) -> tuple[int, int]:
+    return round(2 * cfg.loc_scope / cfg.loc_bin_size), cfg.heading_bins
+
+
+def bin_channels(cfg: PointRCNNConfig) -> int:
+    """x bins + y bins + x res + y res + z + heading bins + heading res + 3 sizes."""
+    loc, head = _bin_counts(cfg)
+    return 4 * loc + 1 + 2 * head + 3
+
+
+def encode_bins(boxes: Tensor, xyz: Tensor, cfg: PointRCNNConfig) -> tuple[Tensor, Tensor]:
+    """Targets of boxes (P, 7) for points xyz (P, 3) -> bins (P, 3) long (x, y, heading) and
+    residuals (P, 7) (x, y normalised by the bin size, z m, heading / half bin, 3 size)."""
+    loc, head = _bin_counts(cfg)
+    shift = (boxes[:, :2] - xyz[:, :2] + cfg.loc_scope).clamp(0, 2 * cfg.loc_scope - 1e-3)  # (P, 2) m
+    loc_bin = torch.floor(shift / cfg.loc_bin_size).long()  # (P, 2)
+    loc_res = (shift - (loc_bin + 0.5) * cfg.loc_bin_size) / cfg.loc_bin_size  # (P, 2) in [-0.5, 0.5)
+    per = 2 * math.pi / head
+    angle = torch.remainder(boxes[:, 6] + per / 2, 2 * math.pi)  # (P,) rad, bin 0 centred on 0
+    head_bin = torch.floor(angle / per).long().clamp(max=head - 1)
+    head_res = (angle - (head_bin + 0.5) * per) / (per / 2)  # (P,) in [-1, 1)
+    mean = boxes.new_tensor(cfg.mean_size)
+    size_res = (boxes[:, 3:6] - mean) / mean  # (P, 3)
+    bins = torch.cat([loc_bin, head_bin[:, None]], 1)
+    res = torch.cat([loc_res, (boxes[:, 2] - xyz[:, 2])[:, None], head_res[:, None], size_res], 1)
+    return bins, res
+
+
+def _split(pred: Tensor, cfg: PointRCNNConfig) -> list[Tensor]:
+    loc, head = _bin_counts(cfg)
+    return list(torch.split(pred, [loc, loc, loc, loc, 1, head, head, 3], dim=1))
+
+
+def _at(values: Tensor, index: Tensor) -> Tensor:
+    """values (P, B), index (P,) -> (P,)."""
+    return torch.gather(values, 1, index[:, None])[:, 0]
+
+
+def decode_bins(pred: Tensor, xyz: Tensor, cfg: PointRCNNConfig) -> Tensor:
+    """Box head output (P, bin_channels) at points xyz (P, 3) -> boxes (P, 7), LiDAR frame."""
+    xb, yb, xr, yr, z, hb, hr, size = _split(pred, cfg)
+    x_bin, y_bin, h_bin = xb.argmax(1), yb.argmax(1), hb.argmax(1)  # (P,)
+    x = (x_bin.float() + 0.5 + _at(xr, x_bin)) * cfg.loc_bin_size - cfg.loc_scope + xyz[:, 0]
+    y = (y_bin.float() + 0.5 + _at(yr, y_bin)) * cfg.loc_bin_size - cfg.loc_scope + xyz[:, 1]
+    per = 2 * math.pi / cfg.heading_bins
+    yaw = (h_bin.float() + 0.5) * per + _at(hr, h_bin) * per / 2 - per / 2
+    yaw = torch.remainder(yaw + math.pi, 2 * math.pi) - math.pi
+    mean = pred.new_tensor(cfg.mean_size)
+    lwh = (size * mean + mean).clamp(min=0.1)  # (P, 3) m
+    return torch.cat([torch.stack([x, y, z[:, 0] + xyz[:, 2]], 1), lwh, yaw[:, None]], 1)
+
+
+def bin_loss(pred: Tensor, bins: Tensor, res: Tensor, cfg: PointRCNNConfig) -> Tensor:
+    """Bin classification (cross-entropy) + residual (smooth-L1) loss of foreground points."""
+    xb, yb, xr, yr, z, hb, hr, size = _split(pred, cfg)
+    cls = F.cross_entropy(xb, bins[:, 0]) + F.cross_entropy(yb, bins[:, 1]) + F.cross_entropy(hb, bins[:, 2])
+    reg_pred = torch.stack([_at(xr, bins[:, 0]), _at(yr, bins[:, 1]), z[:, 0], _at(hr, bins[:, 2])], 1)
+    reg = F.smooth_l1_loss(torch.cat([reg_pred, size], 1), res, beta=1.0 / 9.0, reduction="sum") / len(res)
+    return cls + reg
+
+
+# ---- network ---------------------------------------------------------------------------------
+
+
+class PointNet2Backbone(nn.Module):
+    """MSG set abstraction down to sa_npoints[-1] centres, feature propagation back to P0."""
+
+    def __init__(self, cfg: PointRCNNConfig):
+        super().__init__()
+        self.npoints = cfg.sa_npoints
+        self.sa = nn.ModuleList()
+        channels = [1]  # intensity on P0
+        for radii, nsamples, mlps in zip(cfg.sa_radii, cfg.sa_nsamples, cfg.sa_mlps):
+            self.sa.append(SetAbstraction(channels[-1], radii, nsamples, mlps))
+            channels.append(self.sa[-1].out_channels)
+        self.fp = nn.ModuleList()
+        for level in reversed(range(len(cfg.fp_mlps))):  # coarsest first
+            coarse = channels[-1] if level == len(cfg.fp_mlps) - 1 else cfg.fp_mlps[level + 1][-1]
+            self.fp.append(FeaturePropagation([coarse + channels[level], *cfg.fp_mlps[level]]))
+        self.out_channels = cfg.fp_mlps[0][-1]
+
+    def forward(self, xyz: Tensor, feats: Tensor) -> Tensor:
+        """xyz (n0, 3) m, feats (n0, 1) -> (n0, out_channels)."""
+        xyzs, featss = [xyz], [feats]
+        for npoint, sa in zip(self.npoints, self.sa):
+            centres = xyzs[-1][farthest_point_sample(xyzs[-1], npoint)]  # (M, 3)
+            featss.append(sa(xyzs[-1], featss[-1], centres))  # (M, C)
+            xyzs.append(centres)
+        up = featss[-1]
+        for i, fp in enumerate(self.fp):
+            level = len(self.fp) - 1 - i
+            up = fp(xyzs[level], xyzs[level + 1], featss[level], up)  # (n_level, C)
+        return up
+
+
+def mlp_head(cin: int, hidden: int, cout: int) -> nn.Sequential:
+    return nn.Sequential(shared_mlp([cin, hidden]), nn.Linear(hidden, cout))
+
+
+class RCNNNet(nn.Module):
+    """Stage 2: canonical pooled points -> RoI PointNet++ -> IoU-guided logit and residuals."""
+
+    def __init__(self, cfg: PointRCNNConfig, point_channels: int):
+        super().__init__()
+        self.xyz_up = shared_mlp([5, point_channels, point_channels])  # xyz, seg score, depth
+        self.merge = shared_mlp([2 * point_channels, point_channels])
+        self.sa = nn.ModuleList()
+        cin = point_channels
+        for npoint, radius, nsample, mlp in cfg.rcnn_sa:
+            self.sa.append(RoISetAbstraction(npoint, radius, nsample, (cin, *mlp)))
+            cin = mlp[-1]
+        self.head = RefineHead(cin, cfg.refine_hidden)
+
+    def forward(self, pooled: Tensor, empty: Tensor) -> tuple[Tensor, Tensor]:
+        """pooled (K, S, 5 + C) -> logit (K,), canonical residuals (K, 7)."""
+        xyz = pooled[..., :3]  # (K, S, 3) canonical, m
+        feats = self.merge(torch.cat([self.xyz_up(pooled[..., :5]), pooled[..., 5:]], -1))
+        for sa in self.sa:
+            xyz, feats = sa(xyz, feats)
+        logit, deltas = self.head(feats[:, 0])  # group-all leaves one centre per RoI
+        return logit.masked_fill(empty, -10.0), deltas
+
+
+class PointRCNN(Detector):
+    architecture = "point_rcnn"
+    two_stage = True
+    uses_camera = False
+
+    def __init__(self, cfg: PointRCNNConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = PointNet2Backbone(cfg)
+        c = self.backbone.out_channels
+        self.seg_head = mlp_head(c, cfg.head_channels, 1)
+        nn.init.constant_(self.seg_head[-1].bias, -math.log(99.0))  # foreground prior 0.01
+        self.box_head = mlp_head(c, cfg.head_channels, bin_channels(cfg))
+        self.rcnn = RCNNNet(cfg, c)
+        self.roi_cfg = RoITargetConfig(per_frame=cfg.rois)
+        self.rng = np.random.default_rng(cfg.seed)
+
+    def points_of_interest(self, points: Tensor) -> Tensor:
+        """(N, 4) -> (num_points, 4): the points inside the range, FPS-sampled.
+
+        The in-range cloud is padded with num_points copies of its first point (a zero point
+        when it is empty). FPS starts at that point, so the copies are drawn only once every
+        distinct point is taken: a sparse cloud repeats its first point, a dense one is
+        sampled as without padding, and every later shape is static.
+        """
+        lo = points.new_tensor(self.cfg.point_cloud_range[:3])
+        hi = points.new_tensor(self.cfg.point_cloud_range[3:])
+        pts = points[((points[:, :3] >= lo) & (points[:, :3] < hi)).all(1)]  # (n, 4)
+        first = torch.cat([pts, pts.new_zeros(1, 4)])[:1]  # (1, 4)
+        pts = torch.cat([pts, first.expand(self.cfg.num_points, 4)])  # (n + num_points, 4)
+        return pts[farthest_point_sample(pts[:, :3], self.cfg.num_points)]
+
+    def stage_one(self, pts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """pts (n0, 4) -> features (n0, C), seg logit (n0,), box head output (n0, B)."""
+        feats = self.backbone(pts[:, :3], pts[:, 3:4])
+        return feats, self.seg_head(feats)[:, 0], self.box_head(feats)
+
+    def propose(self, pts: Tensor, seg: Tensor, box: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Decode the top pre_nms points, BEV NMS -> rois (R, 7), roi_scores (R,), valid (R,).
+
+        R = cfg.rois always: the K <= R proposals that survive NMS come first, then zero rows.
+        """
+        scores = torch.sigmoid(seg)  # (n0,)
+        top = torch.topk(scores, min(self.cfg.pre_nms, self.cfg.num_points)).indices  # (T,)
+        boxes = decode_bins(box[top], pts[top, :3], self.cfg)  # (T, 7)
+        keep = nms_rotated(boxes, scores[top], self.cfg.proposal_nms_iou)  # (K,)
+        slot = torch.cat([keep, keep.new_zeros(self.cfg.rois)])[: self.cfg.rois]  # (R,)
+        valid = torch.arange(self.cfg.rois, device=seg.device) < keep.shape[0]  # (R,)
+        rois = boxes[slot] * valid[:, None].to(boxes.dtype)
+        return rois, scores[top][slot] * valid.to(scores.dtype), valid
+
+    def refine(self, pts: Tensor, feats: Tensor, seg: Tensor, rois: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
+        """Stage 2 on rois (K, 7) -> IoU-guided logit (K,), canonical residuals (K, 7)."""
+        depth = pts[:, :3].norm(dim=1, keepdim=True) / 70.0 - 0.5  # (n0, 1)
+        extra = torch.cat([torch.sigmoid(seg)[:, None], depth, feats], 1)  # (n0, 2 + C)
+        pooled, empty = roi_point_pool(pts[:, :3], extra, rois, self.cfg.pool_samples, self.cfg.pool_extra_width)
+        return self.rcnn(pooled, empty | ~valid)
+
+    def forward(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        pts = self.points_of_interest(points)  # (n0, 4)
+        feats, seg, box = self.stage_one(pts)
+        rois, roi_scores, valid = self.propose(pts, seg, box)  # (R, 7), (R,), (R,)
+        logit, deltas = self.refine(pts, feats, seg, rois, valid)
+        rcnn_boxes = decode_canonical(deltas, rois)  # (R, 7)
+        scores = torch.sigmoid(logit) * valid.to(logit.dtype)  # (R,)
+        # NMS before the score threshold keeps the NMS input shape static; boxes below the
+        # threshold come last in score order, so they cannot change which ones above it survive
+        keep = nms_rotated(rcnn_boxes, scores, self.cfg.nms_iou)
+        keep = keep[scores[keep] > self.cfg.score_thresh][: self.cfg.max_detections]
+        k = valid.sum()
+        return rcnn_boxes[keep], scores[keep], rois[:k], roi_scores[:k], rcnn_boxes[:k]
+
+    # ---- training ----------------------------------------------------------------------------
+
+    def seg_targets(self, xyz: Tensor, cars: Tensor, others: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """fg (n0,) bool, weight (n0,) 0 for ignored points, matched car box per point (n0, 7)."""
+        inside = inside_rois(xyz, cars)  # (G, n0)
+        near = inside_rois(xyz, cars, self.cfg.seg_ignore_margin).any(0) | inside_rois(xyz, others).any(0)
+        fg = inside.any(0)
+        weight = (fg | ~near).float()
+        match = cars[inside.float().argmax(0)] if len(cars) else xyz.new_zeros(len(xyz), 7)
+        return fg, weight, match
+
+    def frame_loss(self, sample: Sample) -> dict[str, Tensor]:
+        device = next(self.parameters()).device
+        pts = self.points_of_interest(torch.as_tensor(sample.points, device=device))
+        cars = torch.as_tensor(sample.boxes_of("Car"), device=device)
+        others = torch.as_tensor(sample.gt_boxes[sample.gt_names != "Car"].astype(np.float32), device=device)
+        feats, seg, box = self.stage_one(pts)
+        fg, weight, match = self.seg_targets(pts[:, :3], cars, others)
+        p = torch.sigmoid(seg)
+        focal = F.binary_cross_entropy_with_logits(seg, fg.float(), reduction="none")
+        focal = focal * torch.where(fg, 0.25 * (1 - p) ** 2, 0.75 * p**2) * weight
+        out = {"seg": focal.sum() / fg.sum().clamp(min=1)}
+        if bool(fg.any()):
+            bins, res = encode_bins(match[fg], pts[fg, :3], self.cfg)
+            out["rpn_box"] = bin_loss(box[fg], bins, res, self.cfg)
+        else:
+            out["rpn_box"] = box.sum() * 0.0
+        with torch.no_grad():
+            rois, _, valid = self.propose(pts, seg, box)
+        targets = sample_rois(rois[valid].cpu().numpy(), cars.cpu().numpy(), self.roi_cfg, self.rng)
+        targets = RoITargets(targets.rois.to(device), targets.iou.to(device), targets.gt.to(device))
+        logit, deltas = self.refine(pts, feats, seg, targets.rois, torch.ones_like(targets.iou, dtype=torch.bool))
+        out.update(refine_loss(logit, deltas, targets, self.roi_cfg))
+        return out
+
+    def loss(self, samples: list[Sample]) -> dict[str, Tensor]:
+        """Mean over frames of the stage-1 (focal seg + bin box) and stage-2 losses."""
+        parts = [self.frame_loss(s) for s in samples]
+        out = {k: torch.stack([p[k] for p in parts]).mean() for k in parts[0]}
+        out["loss"] = sum(out.values())
+        return out
+
+
+def build(profile: str = "compact") -> PointRCNN:
+    if profile not in CONFIGS:
+        raise ValueError(f"point_rcnn: unknown profile {profile!r}; choose from {sorted(CONFIGS)}")
+    return PointRCNN(CONFIGS[profile])

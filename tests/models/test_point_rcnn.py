@@ -1,0 +1,160 @@
+import math
+
+import numpy as np
+import onnxruntime as ort
+import pytest
+import torch
+
+from harness.types import Sample
+from models.point_rcnn import CONFIGS, PointRCNN, bin_channels, bin_loss, build, decode_bins, encode_bins
+
+CFG = CONFIGS["tiny"]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny tensors on a shared 2-core machine: one intra-op thread avoids contention."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def numpy_encode(box, point, cfg):
+    """PointRCNN's bin targets for one box and point, written out with Python floats."""
+    out_bins, out_res = [], []
+    for axis in (0, 1):
+        shift = min(max(box[axis] - point[axis] + cfg.loc_scope, 0.0), 2 * cfg.loc_scope - 1e-3)
+        b = int(shift // cfg.loc_bin_size)
+        out_bins.append(b)
+        out_res.append((shift - (b * cfg.loc_bin_size + cfg.loc_bin_size / 2)) / cfg.loc_bin_size)
+    per = 2 * math.pi / cfg.heading_bins
+    angle = (box[6] + per / 2) % (2 * math.pi)
+    hb = min(int(angle // per), cfg.heading_bins - 1)
+    out_bins.append(hb)
+    res = out_res + [box[2] - point[2], (angle - (hb * per + per / 2)) / (per / 2)]
+    res += [(box[3 + i] - cfg.mean_size[i]) / cfg.mean_size[i] for i in range(3)]
+    return out_bins, res
+
+
+def random_boxes(rng, n):
+    xyz = rng.uniform(-10, 10, (n, 3))
+    boxes = np.concatenate([xyz + rng.uniform(-3.5, 3.5, (n, 3)), rng.uniform([3, 1.5, 1.3], [6, 2.2, 2], (n, 3)),
+                            rng.uniform(-math.pi, math.pi, (n, 1))], 1)
+    return torch.from_numpy(boxes.astype(np.float32)), torch.from_numpy(xyz.astype(np.float32))
+
+
+def test_encode_bins_matches_numpy():
+    boxes, xyz = random_boxes(np.random.default_rng(0), 300)
+    bins, res = encode_bins(boxes, xyz, CFG)
+    for i in range(300):
+        ref_bins, ref_res = numpy_encode(boxes[i].double().tolist(), xyz[i].double().tolist(), CFG)
+        assert bins[i].tolist() == ref_bins
+        np.testing.assert_allclose(res[i].numpy(), ref_res, atol=2e-5)
+
+
+def one_hot_prediction(bins, res, cfg):
+    """Box head output whose argmax bins and residuals are the given targets."""
+    loc = round(2 * cfg.loc_scope / cfg.loc_bin_size)
+    parts = list(torch.split(torch.full((len(bins), bin_channels(cfg)), -5.0), [loc] * 4 + [1] + [cfg.heading_bins] * 2 + [3], 1))
+    for j, (b, r) in enumerate([(0, 0), (1, 1)]):
+        parts[j].scatter_(1, bins[:, b:b + 1], 5.0)
+        parts[2 + j].scatter_(1, bins[:, b:b + 1], res[:, r:r + 1])
+    parts[4].copy_(res[:, 2:3])
+    parts[5].scatter_(1, bins[:, 2:3], 5.0)
+    parts[6].scatter_(1, bins[:, 2:3], res[:, 3:4])
+    parts[7].copy_(res[:, 4:])
+    return torch.cat(parts, 1)
+
+
+def test_decode_inverts_encode_within_scope():
+    rng = np.random.default_rng(1)
+    boxes, xyz = random_boxes(rng, 200)
+    boxes[:, :2] = xyz[:, :2] + torch.from_numpy(rng.uniform(-2.9, 2.9, (200, 2)).astype(np.float32))
+    bins, res = encode_bins(boxes, xyz, CFG)
+    pred = one_hot_prediction(bins, res, CFG)
+    dec = decode_bins(pred, xyz, CFG)
+    np.testing.assert_allclose(dec[:, :6].numpy(), boxes[:, :6].numpy(), atol=1e-4)
+    dyaw = np.remainder(dec[:, 6].numpy() - boxes[:, 6].numpy() + math.pi, 2 * math.pi) - math.pi
+    np.testing.assert_allclose(dyaw, 0, atol=1e-4)
+    assert float(bin_loss(pred, bins, res, CFG)) < float(bin_loss(torch.zeros_like(pred), bins, res, CFG))
+
+
+def tiny_scene(rng, n_cars=2, frame_id="000000"):
+    """Ground points plus points on the surfaces of a few cars ahead of the sensor."""
+    ground = np.stack([rng.uniform(0, 60, 600), rng.uniform(-15, 15, 600), np.full(600, -1.7)], 1)
+    boxes = []
+    for i in range(n_cars):
+        boxes.append([12 + 15 * i + rng.uniform(-2, 2), rng.uniform(-6, 6), -0.9, 4.5, 1.8, 1.6, rng.uniform(-0.3, 0.3)])
+    boxes = np.array(boxes, np.float32).reshape(-1, 7)
+    car_pts = []
+    for b in boxes:
+        local = rng.uniform(-0.5, 0.5, (150, 3)) * b[3:6]
+        face = rng.integers(0, 3, 150)
+        local[np.arange(150), face] = np.sign(local[np.arange(150), face]) * b[3 + face] / 2
+        c, s = math.cos(b[6]), math.sin(b[6])
+        car_pts.append(local @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]) + b[:3])
+    xyz = np.concatenate([ground, *car_pts]).astype(np.float32)
+    points = np.concatenate([xyz, rng.uniform(0, 1, (len(xyz), 1))], 1).astype(np.float32)
+    return Sample(frame_id, points, boxes, np.array(["Car"] * len(boxes)))
+
+
+def test_build_rejects_unknown_profile():
+    with pytest.raises(ValueError, match="unknown profile"):
+        build("huge")
+    assert isinstance(build("tiny"), PointRCNN)
+
+
+def test_forward_shapes_and_loss_falls():
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    model = PointRCNN(CFG)
+    scenes = [tiny_scene(rng, frame_id=str(i)) for i in range(2)]
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-2)
+    losses = []
+    for _ in range(25):
+        out = model.loss(scenes)
+        opt.zero_grad()
+        out["loss"].backward()
+        opt.step()
+        losses.append(float(out["loss"].detach()))
+    assert set(out) >= {"loss", "seg", "rpn_box", "rcnn_score", "rcnn_reg"}
+    assert np.mean(losses[-3:]) < 0.7 * np.mean(losses[:3])
+    model.eval()
+    with torch.no_grad():
+        boxes, scores, rois, roi_scores, rcnn_boxes = model(torch.from_numpy(scenes[0].points))
+    k = rois.shape[0]
+    assert boxes.shape[1] == 7 and scores.shape == boxes.shape[:1] and boxes.shape[0] <= CFG.max_detections
+    assert rois.shape == (k, 7) and roi_scores.shape == (k,) and rcnn_boxes.shape == (k, 7) and 0 < k <= CFG.rois
+
+
+def assert_same_rows(got, ref, atol=1e-4):
+    """Same rows up to order: near-equal scores may be ranked differently by two runtimes."""
+    assert got.shape == ref.shape
+    if len(ref):
+        dist = np.abs(got.reshape(len(got), 1, -1) - ref.reshape(1, len(ref), -1)).max(-1)  # (G, R)
+        assert dist.min(0).max() < atol and dist.min(1).max() < atol
+
+
+def test_onnx_matches_torch(tmp_path):
+    torch.manual_seed(0)
+    model = PointRCNN(CFG)
+    rng = np.random.default_rng(1)
+    model.loss([tiny_scene(rng)])  # move the batch-norm statistics off their defaults
+    model.eval()
+    path = tmp_path / "point_rcnn.onnx"
+    n = torch.export.Dim("n", min=0)
+    torch.onnx.export(model, (torch.from_numpy(tiny_scene(rng).points),), str(path), dynamo=True, optimize=False,
+                      input_names=["points"], output_names=list(model.output_names), dynamic_shapes=({0: n},))
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    clouds = [tiny_scene(rng).points, tiny_scene(rng, 1).points[::7],
+              np.concatenate([rng.uniform([0, -20, -3], [80, 20, 2], (500, 3)), rng.uniform(0, 1, (500, 1))], 1),
+              np.zeros((3, 4)), np.zeros((0, 4))]
+    for cloud in clouds:
+        cloud = cloud.astype(np.float32)
+        got = sess.run(None, {"points": cloud})
+        with torch.no_grad():
+            ref = [t.numpy() for t in model(torch.from_numpy(cloud))]
+        assert_same_rows(np.concatenate([got[0], got[1][:, None]], 1), np.concatenate([ref[0], ref[1][:, None]], 1))
+        assert_same_rows(np.concatenate([got[2], got[3][:, None], got[4]], 1),
+                         np.concatenate([ref[2], ref[3][:, None], ref[4]], 1))
