@@ -118,16 +118,24 @@ def shared_mlp(channels: Sequence[int]) -> nn.Sequential:
     """Per-point Linear -> BatchNorm -> ReLU stack on (..., C) tensors."""
     layers: list[nn.Module] = []
     for c_in, c_out in zip(channels[:-1], channels[1:]):
-        layers += [nn.Linear(c_in, c_out, bias=False), _PointBatchNorm(c_out), nn.ReLU()]
+        layers += [nn.Linear(c_in, c_out, bias=False), PointBatchNorm(c_out), nn.ReLU()]
     return nn.Sequential(*layers)
 
 
-class _PointBatchNorm(nn.BatchNorm1d):
-    """BatchNorm1d over the last axis of (..., C); identity statistics on empty input."""
+class PointBatchNorm(nn.BatchNorm1d):
+    """BatchNorm1d over the last axis of (..., C).
+
+    Training with fewer than two rows normalises with the running statistics; inference is the
+    equivalent affine map, which exports for a data-dependent number of rows (F.batch_norm
+    guards on the size during export).
+    """
 
     def forward(self, x: Tensor) -> Tensor:
+        if not self.training:
+            scale = self.weight / torch.sqrt(self.running_var + self.eps)  # (C,)
+            return x * scale + (self.bias - self.running_mean * scale)
         flat = x.reshape(-1, x.shape[-1])  # (P, C)
-        if self.training and flat.shape[0] < 2:
+        if flat.shape[0] < 2:
             out = nn.functional.batch_norm(flat, self.running_mean, self.running_var, self.weight,
                                            self.bias, False, 0.0, self.eps)
         else:

@@ -24,6 +24,7 @@ from torch import Tensor, nn
 from harness.boxes import iou_3d
 from models.anchor_head import AnchorHead
 from models.nms import select_detections
+from models.pointnet2 import PointBatchNorm
 
 
 @dataclass(frozen=True)
@@ -153,7 +154,7 @@ class RefineHead(nn.Module):
         super().__init__()
         layers: list[nn.Module] = []
         for c_in, c_out in zip([in_channels, *hidden[:-1]], hidden):
-            layers += [nn.Linear(c_in, c_out, bias=False), nn.BatchNorm1d(c_out), nn.ReLU(),
+            layers += [nn.Linear(c_in, c_out, bias=False), PointBatchNorm(c_out), nn.ReLU(),
                        nn.Dropout(dropout)]
         self.shared = nn.Sequential(*layers)
         self.cls = nn.Linear(hidden[-1], 1)
@@ -162,16 +163,8 @@ class RefineHead(nn.Module):
         nn.init.zeros_(self.reg.bias)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        h = self.shared(x) if x.shape[0] > 1 or not self.training else self._single(x)
+        h = self.shared(x)  # (K, hidden[-1])
         return self.cls(h).squeeze(1), self.reg(h)
-
-    def _single(self, x: Tensor) -> Tensor:
-        """Training with fewer than two RoIs: BatchNorm with running statistics."""
-        was = self.shared.training
-        self.shared.eval()
-        h = self.shared(x)
-        self.shared.train(was)
-        return h
 
 
 def iou_score_target(iou: Tensor, cfg: RoITargetConfig) -> Tensor:

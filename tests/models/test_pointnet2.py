@@ -6,8 +6,9 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from models.pointnet2 import (FeaturePropagation, SetAbstraction, _fps_graph, ball_query,
-                              farthest_point_sample, group_points, three_nn_interpolate)
+from models.pointnet2 import (FeaturePropagation, PointBatchNorm, SetAbstraction, _fps_graph,
+                              ball_query, farthest_point_sample, group_points,
+                              three_nn_interpolate)
 
 
 def fps_reference(xyz: np.ndarray, num: int) -> np.ndarray:
@@ -152,3 +153,17 @@ def test_fps_and_ball_query_export_to_onnx(tmp_path):
         want = model(torch.from_numpy(pts))
         for g, w in zip(got, want):
             np.testing.assert_array_equal(g, w.numpy())
+
+
+def test_point_batch_norm_matches_batchnorm1d():
+    torch.manual_seed(0)
+    ours, ref = PointBatchNorm(6), torch.nn.BatchNorm1d(6)
+    x = torch.randn(5, 7, 6)
+    for _ in range(3):  # training: batch statistics over every row, running stats updated alike
+        np.testing.assert_allclose(ours(x).detach().numpy(),
+                                   ref(x.reshape(-1, 6)).reshape(5, 7, 6).detach().numpy(), atol=1e-5)
+    ours.eval(), ref.eval()
+    x = torch.randn(9, 6) * 3 + 1
+    np.testing.assert_allclose(ours(x).detach().numpy(), ref(x).detach().numpy(), atol=1e-5)
+    ours.train()
+    assert ours(torch.randn(1, 6)).shape == (1, 6)  # one row: running statistics, no error
