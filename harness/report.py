@@ -149,8 +149,8 @@ def _overview(run: tables.Run) -> dict:
 def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
     if df.empty:
         return Markup("<p class='empty'>(not available in this run)</p>")
-    return Markup(df.to_html(index=False, na_rep="–", border=0, classes="tbl",
-                             float_format=lambda v, d=decimals: tables.fmt_float(v, d)))
+    html = df.to_html(index=False, na_rep="–", border=0, classes="tbl", float_format=lambda v, d=decimals: tables.fmt_float(v, d))
+    return Markup(html.replace("<td>FAIL", '<td class="fail">FAIL').replace("<td>pass", '<td class="pass">pass'))
 
 
 def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, str]:

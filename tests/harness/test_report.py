@@ -97,6 +97,7 @@ def test_render_writes_a_self_contained_report(rendered):
     pos = [html.index(s) for s in ("profile</b> quick", "alpha, beta", "Models at a glance", 'alt="heatmap"', "HardRainNight", 'id="paper"')]
     assert pos == sorted(pos)
     assert 'id="sotif"' in html and "Recall of two-stage models" in html
+    assert re.search(r'<td class="(pass|fail)">(pass|FAIL) ', html)
 
 
 def test_report_md_links_written_figures_and_tables(rendered):
