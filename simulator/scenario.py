@@ -121,7 +121,7 @@ def _sotif_frame(road, sc, t, s_e, v_e, s_f, d_f, slope_f, s_s, bg, t_lc) -> Fra
 
 @dataclass(frozen=True)
 class TrainConfig:
-    density_range: tuple[float, float] = (0.3, 1.6)  # vehicles per 100 m and lane
+    density_range: tuple[float, float] = (0.8, 2.5)  # vehicles per 100 m and lane
     ahead: float = 95.0  # m, farthest vehicle placed ahead of the ego
     behind: float = 45.0  # m
     lane_change_share: float = 0.12
@@ -146,11 +146,13 @@ def training_scene(road: RoadConfig, rng: np.random.Generator, tc: TrainConfig =
     for onc in (False, True):
         for lane in range(1, road.lanes + 1):
             lane_dens = dens * rng.uniform(0.5, 1.5) * (0.6 if onc else 1.0)
-            s = s_e - tc.behind - rng.exponential(100.0 / lane_dens)
+            s = s_e - tc.behind - rng.uniform(0.0, 100.0 / lane_dens)
             while True:
                 s += 6.0 + rng.exponential(100.0 / lane_dens)
                 if s > s_e + tc.ahead:
                     break
+                if s < s_e - tc.behind:
+                    continue
                 v = _train_vehicle(road, rng, tc, s, lane, onc, spans)
                 if v is not None:
                     vehicles.append(v)

@@ -1,0 +1,94 @@
+import numpy as np
+import pytest
+
+from harness.boxes import iou_bev
+from harness.kitti import kitti_calib
+from simulator.camera import camera_rays
+from simulator.labels import lidar_boxes
+from simulator.lidar import Pose, rotate_yaw
+from simulator.road import RoadConfig, centreline, lane_center, road_to_world
+from simulator.scenario import EGO_DIMS, SotifConfig, sotif_run, training_scene
+from simulator.vehicles import BODY_NAMES, BODY_TYPES, vehicle_mesh
+
+ROAD = RoadConfig()
+
+
+def test_centreline_is_unit_speed_and_heading_is_tangent():
+    s = np.sort(np.random.default_rng(0).uniform(0, ROAD.length, 200))
+    x, y, h = centreline(ROAD, s)
+    x2, y2, _ = centreline(ROAD, s + 1e-4)
+    np.testing.assert_allclose(np.hypot(x2 - x, y2 - y) / 1e-4, 1.0, atol=1e-5)
+    np.testing.assert_allclose(np.arctan2(y2 - y, x2 - x), h, atol=1e-4)
+    xd, yd, _ = road_to_world(ROAD, s, np.full(200, -5.0))
+    np.testing.assert_allclose(np.hypot(xd - x, yd - y), 5.0)
+    assert lane_center(ROAD, 1) < lane_center(ROAD, 4) < 0 < lane_center(ROAD, 4, oncoming=True)
+
+
+def test_rotate_yaw_matches_matrix():
+    rng = np.random.default_rng(1)
+    v, yaw = rng.normal(size=(100, 3)), rng.uniform(-4, 4)
+    np.testing.assert_allclose(rotate_yaw(v, yaw), v @ Pose(0, 0, yaw).rotation().T, atol=1e-12)
+
+
+def test_camera_rays_reproject_to_their_pixels():
+    calib = kitti_calib(width=300, height=90, focal=250.0, cam_in_lidar=(0.4, 0.1, -0.2))
+    centre, dirs = camera_rays(calib.lidar2img(), 300, 90, 3)
+    depth = np.random.default_rng(2).uniform(2, 80, dirs.shape[:2])
+    pts = centre + dirs * depth[..., None]
+    uv, d = calib.project_lidar(pts.reshape(-1, 3))
+    u = (np.arange(100) + 0.5) * 3 - 0.5
+    v = (np.arange(30) + 0.5) * 3 - 0.5
+    uu, vv = np.meshgrid(u, v)
+    np.testing.assert_allclose(uv, np.c_[uu.ravel(), vv.ravel()], atol=1e-3)
+    assert (d > 0).all()
+    np.testing.assert_allclose(centre, [0.4, 0.1, -0.2], atol=1e-4)
+
+
+@pytest.mark.parametrize("body", BODY_NAMES)
+def test_vehicle_mesh_spans_its_box(body):
+    dims = np.array(BODY_TYPES[body].dims) * 1.03
+    tris, mats = vehicle_mesh(body, dims, "red")
+    v = tris.reshape(-1, 3)
+    np.testing.assert_allclose(v.min(0), [-dims[0] / 2, -dims[1] / 2, -dims[2] / 2], atol=1e-9)
+    np.testing.assert_allclose(v.max(0), [dims[0] / 2, dims[1] / 2, dims[2] / 2], atol=1e-9)
+    assert len(mats) == len(tris) and len(np.unique(mats)) >= 4
+
+
+def _lateral(x: float, y: float) -> float:
+    """Signed offset from the median by brute-force nearest point on the centreline."""
+    s = np.arange(0.0, ROAD.length, 0.01)
+    cx, cy, h = centreline(ROAD, s)
+    i = np.argmin((cx - x) ** 2 + (cy - y) ** 2)
+    return float(-(x - cx[i]) * np.sin(h[i]) + (y - cy[i]) * np.cos(h[i]))
+
+
+def test_sotif_scenario_kinematics():
+    sc = SotifConfig()
+    frames = sotif_run(ROAD, 27, np.random.default_rng(0), sc)
+    t_lc = frames[0].info["lane_change_time_s"]
+    assert 0.5 <= t_lc <= 1.5
+    for f in frames:
+        slow, fast = f.vehicles[0], f.vehicles[1]
+        gap = np.hypot(slow.x - fast.x, slow.y - fast.y) - (slow.dims[0] + fast.dims[0]) / 2
+        box = lidar_boxes([slow, fast], f.pose, 1.73)
+        if f.time_s <= t_lc - 0.01:
+            assert gap > sc.trigger_gap - 1e-6 and abs(box[1, 1]) < 0.05  # fast car still in the ego lane
+        assert abs(box[0, 1]) < 0.05  # slow car in the ego lane
+        if f.time_s >= t_lc + sc.lane_change_duration:
+            assert _lateral(fast.x, fast.y) == pytest.approx(lane_center(ROAD, sc.ego_lane + 1), abs=0.02)
+    speeds = [f.ego_speed for f in frames]
+    assert speeds[0] == sc.ego_speed and speeds[-1] < sc.slow_speed + 0.5
+    assert all(a >= b - 1e-9 for a, b in zip(speeds, speeds[1:]))
+    dist = [f.info["slow_car_distance_m"] for f in frames]
+    assert 40 < min(dist) and max(dist) < 90
+
+
+def test_training_scenes_do_not_overlap():
+    for seed in range(5):
+        state = training_scene(ROAD, np.random.default_rng(seed))
+        boxes = lidar_boxes(state.vehicles, state.pose, 1.73)
+        ego = np.array([[0.0, 0.0, 0.0, *EGO_DIMS, 0.0]])
+        iou = iou_bev(np.r_[ego, boxes], np.r_[ego, boxes])
+        np.fill_diagonal(iou, 0)
+        assert iou.max() == 0 and len(boxes) >= 3
+        assert (boxes[:, 0] > -50).all() and (boxes[:, 0] < 105).all()
