@@ -9,6 +9,7 @@ corrupt ``results.json``) raises ``KittiError`` naming the file before anything 
 from __future__ import annotations
 
 import base64
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -162,6 +163,7 @@ def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, 
     env_md = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=False,
                          keep_trailing_newline=True)
     md = env_md.get_template("report.md.j2").render(**ctx, images=md_links, md=tables.to_markdown)
+    md = re.sub(r"\n{3,}", "\n\n", md)
     env_html = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=True)
     uris = {k: "data:image/png;base64," + base64.b64encode(v[1]).decode("ascii") for k, v in figs.items()}
     html = env_html.get_template("index.html.j2").render(**ctx, images=uris, table=_html_table)

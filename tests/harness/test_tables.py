@@ -145,7 +145,7 @@ def test_data_table_against_plain_aggregation():
 def test_markdown_cells():
     df = pd.DataFrame({"name": ["a|b", "c"], "v": [1.23456, np.nan], "ok": [True, False]})
     md = tables.to_markdown(df, digits=1).splitlines()
-    assert md[0] == "| name | v | ok |" and md[2] == "| a\\|b | 1.2 | yes |" and md[3] == "| c | – | no |"
+    assert md[0] == "| name | v | ok |" and md[1] == "|---|---:|---|" and md[2] == "| a\\|b | 1.2 | yes |" and md[3] == "| c | – | no |"
     assert tables.fmt_float(3e-6, 2) == "3.0e-06" and tables.fmt_float(0.0, 2) == "0.00" and tables.fmt_float(0.006, 2) == "0.01"
     assert tables.to_markdown(pd.DataFrame()) == "_(no data)_\n"
 
