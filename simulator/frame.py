@@ -1,5 +1,9 @@
 """One frame: scene state -> LiDAR scan, camera image, labels, calib, meta row (files on disk).
 
+meta row: slow_car_label_index / fast_car_label_index give the row of that vehicle in the
+frame's label_2 file (-1 when it is not in the camera image; the row is a DontCare row when
+the vehicle is hidden or beyond the labelling distance). Training scenes have neither.
+
 Worlds, their Embree scenes and the SOTIF trajectories are cached per process. Random
 streams are seeded per frame: the LiDAR's from (seed, scenario, scenario step) for SOTIF so
 that a weather-blind sensor gives the same scan in every weather, the rest from the frame index.

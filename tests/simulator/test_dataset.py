@@ -102,3 +102,11 @@ def test_ply_export_and_preview(sotif_set, tmp_path):
     assert f"element vertex {meta['n_points'][1] + 8 * n_labels}" in ply
     assert len(ply) == ply.index("end_header") + 1 + meta["n_points"][1] + 8 * n_labels + 12 * n_labels
     assert preview(sotif_set, "000001", tmp_path / "p.png").stat().st_size > 10000
+
+
+def test_carla_mode_scans_do_not_depend_on_weather(tmp_path):
+    out = generate(tmp_path / "c", "sotif", frames=2, weathers=["ClearNoon", "HardRainNight"], seed=2,
+                   lidar_model="carla", progress=False)
+    a, b = (kitti.frame_path(out, "velodyne", f).read_bytes() for f in ("000000", "000001"))
+    assert a == b and len(a) > 0
+    assert kitti.frame_path(out, "image_2", "000000").read_bytes() != kitti.frame_path(out, "image_2", "000001").read_bytes()
