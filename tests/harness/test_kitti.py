@@ -140,3 +140,11 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path, monkeypatch):
     with pytest.raises(OSError):
         kitti.atomic_write_text(p, "new")
     assert p.read_text() == "old" and len(list(tmp_path.iterdir())) == 1
+
+
+def test_atomic_write_gives_the_usual_file_mode(tmp_path):
+    import os
+    umask = os.umask(0)
+    os.umask(umask)
+    p = kitti.atomic_write_text(tmp_path / "mode.txt", "x")
+    assert p.stat().st_mode & 0o777 == 0o666 & ~umask
