@@ -227,6 +227,7 @@ def spray_ranges(dirs: np.ndarray, spec: LidarSpec, pose: Pose, vehicles: list[V
     close = np.abs(el - elev[ch]) < 0.2
     col = np.round(az / (2 * np.pi) * spec.n_azimuth).astype(int) % spec.n_azimuth
     idx = ch * spec.n_azimuth + col
-    for i, rr in zip(idx[close], rng_[close]):
-        out[i] = min(out[i], rr) if np.isfinite(out[i]) else rr
+    nearest = np.full(len(dirs), np.inf)
+    np.minimum.at(nearest, idx[close], rng_[close])
+    out[np.isfinite(nearest)] = nearest[np.isfinite(nearest)]
     return out

@@ -123,3 +123,18 @@ def test_fused_hard_returns_match_effect_formulas():
     ref_i = np.clip(rho * cos_i * t2 * np.exp(-0.004 * tf), 0, 1)
     np.testing.assert_allclose(i_out[ok], ref_i[ok], rtol=1e-12)
     assert 0.3 < ok.mean() < 0.95
+
+
+def test_spray_clusters_land_on_their_nearest_ray():
+    from simulator.lidar import spray_ranges
+
+    pose = _pose()
+    spec = LidarSpec()
+    car = _car(pose, 15, 0)
+    r = spray_ranges(ray_directions(spec), spec, pose, [car], 1.0, np.random.default_rng(7))
+    hit = np.flatnonzero(np.isfinite(r))
+    assert len(hit) > 0
+    pts = ray_directions(spec)[hit] * r[hit, None]  # LiDAR frame
+    assert (pts[:, 0] < 15 - 4.75 / 2 + 0.1).all() and (pts[:, 0] > 15 - 4.75 / 2 - 4.6).all()
+    assert (np.abs(pts[:, 1]) < 2.5).all() and (pts[:, 2] > -1.73).all()
+    assert np.isnan(spray_ranges(ray_directions(spec), spec, pose, [car], 0.0, np.random.default_rng(7))).all()
