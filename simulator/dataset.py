@@ -79,6 +79,16 @@ def _check_args(preset, frames, weathers, workers, lidar_model) -> tuple[str, ..
     return tuple(weathers)
 
 
+def default_frames(preset: str, n_weathers: int) -> int:
+    """547 SOTIF frames over the 21 presets (~26 per run, like the paper), or 400 training scenes."""
+    return int(round(SOTIF_FRAMES * n_weathers / len(WEATHER_PRESETS))) if preset == "sotif" else TRAIN_FRAMES
+
+
+def max_frames(preset: str, n_weathers: int) -> int | float:
+    """`frames` only caps the SOTIF set: a run records at most the scenario's length."""
+    return default_frames(preset, n_weathers) if preset == "sotif" else float("inf")
+
+
 def plan_jobs(cfg: GenerateConfig) -> list[FrameJob]:
     """Frame jobs in frame-id order with their split."""
     if cfg.preset == "sotif":
@@ -161,8 +171,7 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     `lidar_model`, "carla" turning it into CARLA's weather-blind ray-cast LiDAR).
     """
     weathers = _check_args(preset, frames, weathers, workers, lidar_model)
-    if frames is None:
-        frames = SOTIF_FRAMES if preset == "sotif" else TRAIN_FRAMES
+    frames = default_frames(preset, len(weathers)) if frames is None else min(frames, max_frames(preset, len(weathers)))
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     base = lidar_spec if lidar_spec is not None else LidarSpec()

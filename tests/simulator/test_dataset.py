@@ -74,6 +74,13 @@ def test_training_scenes_with_another_sensor(tmp_path):
     assert kitti.read_image_set(out / "ImageSets" / "test.txt") == []
 
 
+def test_frame_counts():
+    from simulator.dataset import default_frames, max_frames
+
+    assert default_frames("sotif", 21) == 547 and default_frames("sotif", 2) == 52
+    assert max_frames("sotif", 21) == 547 and default_frames("train", 6) == 400 and max_frames("train", 1) > 1e9
+
+
 def test_split_plans():
     cfg = GenerateConfig("sotif", 547, tuple(WEATHER_PRESETS), 0, LidarSpec())
     jobs = plan_jobs(cfg)
