@@ -39,7 +39,7 @@ from models.roi_head import (
 
 @dataclass(frozen=True)
 class PointRCNNConfig:
-    point_cloud_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
+    pc_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
     num_points: int = 4096  # FPS sample of the cloud that every later stage works on
     sa_npoints: tuple[int, ...] = (1024, 256, 64, 16)
     sa_radii: tuple[tuple[float, ...], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
@@ -75,7 +75,7 @@ CONFIGS = {
     ),
     "compact": PointRCNNConfig(),
     "kitti": PointRCNNConfig(
-        point_cloud_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), num_points=16384,
+        pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), num_points=16384,
         sa_npoints=(4096, 1024, 256, 64), sa_radii=((0.1, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, 4.0)),
         sa_mlps=(((16, 16, 32), (32, 32, 64)), ((64, 64, 128), (64, 96, 128)),
                  ((128, 196, 256), (128, 196, 256)), ((256, 256, 512), (256, 384, 512))),
@@ -239,8 +239,8 @@ class PointRCNN(Detector):
         distinct point is taken: a sparse cloud repeats its first point, a dense one is
         sampled as without padding, and every later shape is static.
         """
-        lo = points.new_tensor(self.cfg.point_cloud_range[:3])
-        hi = points.new_tensor(self.cfg.point_cloud_range[3:])
+        lo = points.new_tensor(self.cfg.pc_range[:3])
+        hi = points.new_tensor(self.cfg.pc_range[3:])
         pts = points[((points[:, :3] >= lo) & (points[:, :3] < hi)).all(1)]  # (n, 4)
         first = torch.cat([pts, pts.new_zeros(1, 4)])[:1]  # (1, 4)
         pts = torch.cat([pts, first.expand(self.cfg.num_points, 4)])  # (n + num_points, 4)
