@@ -1,0 +1,243 @@
+"""``sotif-bench run``: simulate -> train -> export -> predict -> evaluate -> report.
+
+Every stage writes its files and a record ``RUN/.stages/<stage>.json`` holding the hash of its
+inputs and config; a stage whose record matches is skipped, so a second run only redoes what
+changed, and an interrupted run resumes (each stage also resumes inside itself: the simulator
+per frame, training per epoch, prediction per frame).
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import time
+from dataclasses import asdict, dataclass, replace
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from harness.kitti import atomic_write_text
+
+RUN_SCHEMA = "sotif-bench/run/1"
+GROUP_COLUMNS = ("weather", "time_of_day", "precipitation_class")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """What a run does; a profile is a named RunConfig."""
+
+    profile: str
+    model_profile: str  # the detectors' config profile: tiny | compact | kitti
+    train_frames: int
+    sotif_frames: int | None  # None: the full 547-frame SOTIF set
+    epochs: int | None  # None: each model's own default for its profile
+    seed: int = 0
+    workers: int = 2
+    device: str = "cpu"
+    runtime_frames: int = 20  # frames timed in torch eager and compared with onnxruntime
+    bootstrap: int = 200
+    lidar_model: str = "physics"
+
+
+PROFILES = {
+    "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=5),
+    "default": RunConfig("default", "compact", train_frames=400, sotif_frames=None, epochs=None),
+    "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda"),
+}
+
+
+def _digest(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def _file_digest(path: Path) -> str:
+    from harness.infer import sha256_file
+    return sha256_file(path)[:16] if path.is_file() else "missing"
+
+
+class Stages:
+    """Skip-if-current bookkeeping for the stages of one run directory."""
+
+    def __init__(self, run_dir: Path, progress: bool):
+        self.dir = run_dir / ".stages"
+        self.progress = progress
+
+    def record(self, name: str) -> dict | None:
+        p = self.dir / f"{name}.json"
+        return json.loads(p.read_text()) if p.is_file() else None
+
+    def run(self, name: str, key, fn, outputs=()) -> dict:
+        """Run ``fn() -> dict`` unless the stage's record has the same key and its outputs exist."""
+        key = _digest(key)
+        rec = self.record(name)
+        if rec and rec.get("key") == key and all(Path(o).exists() for o in outputs):
+            self._say(f"[skip] {name} (up to date)")
+            return rec["info"]
+        self._say(f"[run ] {name}")
+        t0 = time.perf_counter()
+        info = fn() or {}
+        info = {**info, "seconds": round(time.perf_counter() - t0, 3)}
+        atomic_write_text(self.dir / f"{name}.json", json.dumps({"key": key, "info": info}, indent=1, default=str))
+        return info
+
+    def _say(self, msg: str) -> None:
+        if self.progress:
+            print(msg, flush=True)
+
+
+def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
+    from simulator import generate
+    frames = cfg.train_frames if preset == "train" else cfg.sotif_frames
+    seed = cfg.seed if preset == "sotif" else cfg.seed + 1000
+    out = data_dir / preset
+    key = {"preset": preset, "frames": frames, "seed": seed, "lidar": cfg.lidar_model}
+    stages.run(f"simulate_{preset}", key, lambda: {"out": str(generate(
+        out, preset=preset, frames=frames, seed=seed, workers=cfg.workers, lidar_model=cfg.lidar_model,
+        progress=stages.progress))}, outputs=[out / "meta" / "dataset.json"])
+    return _file_digest(out / "meta" / "dataset.json")
+
+
+def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, train_hash: str) -> dict:
+    from harness.train import train
+    from models.export import export_checkpoint
+    ckpt_dir = run_dir / "models" / name
+    ckpt = ckpt_dir / "checkpoint.pt"
+    tinfo = stages.run(f"train_{name}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
+                                          "data": train_hash, "seed": cfg.seed},
+                       lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt_dir,
+                                                        profile=cfg.model_profile, epochs=cfg.epochs,
+                                                        device=cfg.device, seed=cfg.seed,
+                                                        progress=stages.progress))},
+                       outputs=[ckpt])
+    onnx_path = run_dir / "models" / f"{name}.onnx"
+    stages.run(f"export_{name}", {"checkpoint": _file_digest(ckpt)},
+               lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=name))}, outputs=[onnx_path])
+    return tinfo
+
+
+def _checkpoint_meta(ckpt: Path) -> dict:
+    import torch
+    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    params = sum(int(np.prod(v.shape)) for v in state["state_dict"].values() if hasattr(v, "shape")
+                 and v.dtype.is_floating_point)
+    return {"params": params, "epochs": state.get("epoch"), "final_loss": state.get("final_loss")}
+
+
+def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str) -> dict:
+    from harness.evaluate import evaluate, write_results
+    from harness.infer import predict
+    onnx_path = run_dir / "models" / f"{name}.onnx"
+    data = run_dir / "data" / "sotif"
+    pred = run_dir / "predictions" / name
+    key = {"onnx": _file_digest(onnx_path), "data": sotif_hash, "runtime": runtime}
+    stages.run(f"predict_{name}", key, lambda: {"summary": predict(onnx_path, data, pred, split="test", runtime=runtime,
+                                                                   progress=stages.progress)},
+               outputs=[pred / "predict.json"])
+    if (data / "ImageSets" / "val.txt").stat().st_size:
+        stages.run(f"predict_val_{name}", key, lambda: {"summary": predict(onnx_path, data, run_dir / "predictions_val" / name,
+                                                                           split="val", runtime=runtime, progress=False)},
+                   outputs=[run_dir / "predictions_val" / name / "predict.json"])
+    res_path = run_dir / "results" / f"{name}.json"
+
+    def _evaluate():
+        res = evaluate(data, pred, split=data / "ImageSets" / "test.txt", group_by=list(GROUP_COLUMNS),
+                       meta=data / "meta" / "frames.csv", n_bootstrap=cfg.bootstrap, seed=cfg.seed)
+        write_results(res_path, res)
+        return {}
+    stages.run(f"evaluate_{name}", {**key, "bootstrap": cfg.bootstrap}, _evaluate, outputs=[res_path])
+    return json.loads((pred / "predict.json").read_text())
+
+
+def _runtime_probe(stages: Stages, cfg: RunConfig, run_dir: Path, name: str) -> dict:
+    from harness.runtime import compare_torch_onnx
+    onnx_path = run_dir / "models" / f"{name}.onnx"
+    return stages.run(f"runtime_{name}", {"onnx": _file_digest(onnx_path), "frames": cfg.runtime_frames},
+                      lambda: compare_torch_onnx(run_dir / "models" / name / "checkpoint.pt", onnx_path,
+                                                 run_dir / "data" / "sotif", n_frames=cfg.runtime_frames))
+
+
+def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe: dict) -> dict:
+    from harness.infer import check_contract
+    from harness.sotif import sotif_view
+    onnx_path = run_dir / "models" / f"{name}.onnx"
+    info = check_contract(onnx_path)
+    ck = _checkpoint_meta(run_dir / "models" / name / "checkpoint.pt")
+    data = run_dir / "data" / "sotif"
+    return {"architecture": info.architecture, "two_stage": info.two_stage, "uses_camera": info.uses_camera,
+            "onnx": f"models/{name}.onnx", "size_mb": onnx_path.stat().st_size / 2**20, "params": ck["params"],
+            "op_histogram": info.op_histogram,
+            "train": {"seconds": tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"]},
+            "runtime": {"onnxruntime": ort, **{k: v for k, v in probe.items() if k != "seconds"}},
+            "results": f"results/{name}.json",
+            "sotif": sotif_view(data, run_dir / "predictions" / name, split="test",
+                                val_predictions_dir=run_dir / "predictions_val" / name)}
+
+
+def resolve(profile: str, models, out) -> tuple[RunConfig, list[str], Path]:
+    if profile not in PROFILES:
+        raise ValueError(f"unknown profile {profile!r}; expected one of {', '.join(PROFILES)}")
+    from models.zoo import MODEL_NAMES, available
+    cfg = PROFILES[profile]
+    if cfg.device == "cuda":
+        import torch
+        if not torch.cuda.is_available():
+            cfg = replace(cfg, device="cpu")
+    names = list(models) if models else list(available())
+    bad = [m for m in names if m not in MODEL_NAMES]
+    if bad:
+        raise ValueError(f"unknown model(s) {', '.join(bad)}; expected names from {', '.join(MODEL_NAMES)}")
+    missing = [m for m in names if m not in available()]
+    if missing:
+        raise ValueError(f"model(s) {', '.join(missing)} are not available in this installation")
+    return cfg, names, Path(out) if out else Path("reports") / profile
+
+
+def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime") -> Path:
+    """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory."""
+    from harness.report import render
+    cfg, names, run_dir = resolve(profile, models, out)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(run_dir / "config.json", json.dumps({**asdict(cfg), "models": names, "runtime": runtime}, indent=1))
+    stages = Stages(run_dir, progress)
+    t0 = time.perf_counter()
+    train_hash = _simulate(stages, cfg, run_dir / "data", "train")
+    sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
+    summary = {}
+    for i, name in enumerate(names, 1):
+        stages._say(f"== model {i}/{len(names)}: {name} (elapsed {time.perf_counter() - t0:.0f} s)")
+        tinfo = _train_export(stages, cfg, run_dir, name, train_hash)
+        ort = _predict_eval(stages, cfg, run_dir, name, sotif_hash, runtime)
+        probe = _runtime_probe(stages, cfg, run_dir, name)
+        summary[name] = _model_summary(cfg, run_dir, name, tinfo, ort, probe)
+    data_stats(run_dir)
+    ids = lambda s: len((run_dir / "data" / "sotif" / "ImageSets" / f"{s}.txt").read_text().split())
+    result = {"schema": RUN_SCHEMA, "profile": profile, "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+              "config": asdict(cfg), "models": summary,
+              "data": {"n_test_frames": ids("test"), "n_val_frames": ids("val"),
+                       "n_train_frames": len((run_dir / "data" / "train" / "ImageSets" / "train.txt").read_text().split()),
+                       "stats": "tables/data_stats.csv"},
+              "stage_seconds": {p.stem: json.loads(p.read_text())["info"].get("seconds")
+                                for p in sorted((run_dir / ".stages").glob("*.json"))}}
+    atomic_write_text(run_dir / "results.json", json.dumps(result, indent=1, default=str))
+    render(run_dir)
+    return run_dir
+
+
+def data_stats(run_dir: Path) -> Path:
+    """Per-frame point statistics of the SOTIF test data: count, max/mean range, ground share."""
+    import pandas as pd
+    from harness.kitti import frame_path, read_frames_meta, read_points
+    data = run_dir / "data" / "sotif"
+    meta = read_frames_meta(data / "meta" / "frames.csv")
+    rows = []
+    for fid in meta["frame_id"]:
+        pts = read_points(frame_path(data, "velodyne", fid))
+        rng = np.linalg.norm(pts[:, :2], axis=1)
+        rows.append({"frame_id": fid, "n_points": len(pts), "max_range_m": float(rng.max()) if len(pts) else 0.0,
+                     "mean_range_m": float(rng.mean()) if len(pts) else 0.0,
+                     "ground_share": float((pts[:, 2] < -1.5).mean()) if len(pts) else 0.0,
+                     "mean_intensity": float(pts[:, 3].mean()) if len(pts) else 0.0})
+    df = meta[["frame_id", "split", "weather"]].merge(pd.DataFrame(rows), on="frame_id")
+    out = run_dir / "tables" / "data_stats.csv"
+    atomic_write_text(out, df.to_csv(index=False, lineterminator="\n"))
+    return out
