@@ -40,8 +40,9 @@ from models.roi_head import (
 @dataclass(frozen=True)
 class PointRCNNConfig:
     pc_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
-    num_points: int = 4096  # FPS sample of the cloud that every later stage works on
-    sa_npoints: tuple[int, ...] = (1024, 256, 64, 16)
+    num_points: int = 2048  # FPS sample of the cloud that every later stage works on
+    thin_factor: int = 4  # in-range points are first thinned to thin_factor * num_points
+    sa_npoints: tuple[int, ...] = (512, 128, 32, 8)
     sa_radii: tuple[tuple[float, ...], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
     sa_nsamples: tuple[tuple[int, ...], ...] = ((16, 32), (16, 32), (16, 32), (16, 32))
     sa_mlps: tuple = (((16, 16, 32), (16, 16, 32)), ((32, 32, 64), (32, 32, 64)),
@@ -52,7 +53,7 @@ class PointRCNNConfig:
     loc_bin_size: float = 0.5  # m
     heading_bins: int = 12
     mean_size: tuple[float, float, float] = (4.5, 1.8, 1.6)  # l, w, h of a car, m
-    pre_nms: int = 512  # top-scoring points decoded before the proposal NMS
+    pre_nms: int = 256  # top-scoring points decoded before the proposal NMS
     rois: int = 64  # proposals kept after NMS (stage-2 inputs)
     proposal_nms_iou: float = 0.8  # BEV IoU
     pool_samples: int = 128  # points pooled per RoI
@@ -232,18 +233,24 @@ class PointRCNN(Detector):
         self.rng = np.random.default_rng(cfg.seed)
 
     def points_of_interest(self, points: Tensor) -> Tensor:
-        """(N, 4) -> (num_points, 4): the points inside the range, FPS-sampled.
+        """(N, 4) -> (num_points, 4): the points inside the range, thinned, FPS-sampled.
 
-        The in-range cloud is padded with num_points copies of its first point (a zero point
-        when it is empty). FPS starts at that point, so the copies are drawn only once every
-        distinct point is taken: a sparse cloud repeats its first point, a dense one is
-        sampled as without padding, and every later shape is static.
+        The n in-range points are first thinned to thin_factor * num_points evenly spaced
+        indices (LiDAR order runs along rings, so this is a uniform thinning that bounds the
+        FPS cost; a sparse cloud repeats points). The result is padded with num_points copies
+        of its first point (a zero point when the cloud is empty): FPS starts at that point,
+        so the copies are drawn only once every distinct point is taken, and every later
+        shape is static.
         """
         lo = points.new_tensor(self.cfg.pc_range[:3])
         hi = points.new_tensor(self.cfg.pc_range[3:])
         pts = points[((points[:, :3] >= lo) & (points[:, :3] < hi)).all(1)]  # (n, 4)
-        first = torch.cat([pts, pts.new_zeros(1, 4)])[:1]  # (1, 4)
-        pts = torch.cat([pts, first.expand(self.cfg.num_points, 4)])  # (n + num_points, 4)
+        pts = torch.cat([pts, pts.new_zeros(1, 4)])  # (n + 1, 4): row n only read when n == 0
+        m = self.cfg.thin_factor * self.cfg.num_points
+        step = (pts.shape[0] - 1) / m
+        idx = torch.floor(torch.arange(m, device=pts.device, dtype=torch.float32) * step).long()
+        pts = pts[idx]  # (m, 4)
+        pts = torch.cat([pts, pts[:1].expand(self.cfg.num_points, 4)])  # (m + num_points, 4)
         return pts[farthest_point_sample(pts[:, :3], self.cfg.num_points)]
 
     def stage_one(self, pts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
