@@ -6,6 +6,8 @@ frames/s of the full frame pipeline, and the time to generate the SOTIF set on 2
 from __future__ import annotations
 
 import argparse
+import os
+import resource
 import shutil
 import tempfile
 import time
@@ -75,15 +77,26 @@ def bench_frames(frames: int) -> None:
           f"({1e3 * dt / (len(jobs) - 1):.0f} ms/frame)")
 
 
+def _cpu_seconds() -> float:
+    own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
 def bench_full(workers: int) -> None:
     root = Path(tempfile.mkdtemp(prefix="bench_sotif_"))
     try:
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), _cpu_seconds()
         generate(root / "sotif", "sotif", workers=workers, progress=False)
-        dt = time.perf_counter() - t0
+        dt, cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     finally:
         shutil.rmtree(root)
-    print(f"full SOTIF set (547 frames, LiDAR + 1242x375 images + labels) on {workers} workers: {dt:.1f} s")
+    print(f"full SOTIF set (547 frames, LiDAR + 1242x375 images + labels) on {workers} workers: {dt:.1f} s wall, "
+          f"{cpu:.1f} CPU s (= {cpu / workers:.1f} s on {workers} otherwise idle cores); "
+          f"load average at the end: {_load()}")
+
+
+def _load() -> str:
+    return "{:.1f}".format(os.getloadavg()[0])
 
 
 def main() -> None:
@@ -94,6 +107,7 @@ def main() -> None:
     ap.add_argument("--weather", default="HardRainNoon", choices=list(WEATHER_PRESETS))
     ap.add_argument("--skip-full", action="store_true", help="skip the full SOTIF generation")
     args = ap.parse_args()
+    print(f"load average (1 min) at start: {_load()} on {os.cpu_count()} cores")
     bench_rays(args.repeats, args.weather)
     bench_frames(args.frames)
     if not args.skip_full:
