@@ -27,12 +27,12 @@ from simulator.weather import WEATHER_PRESETS
 from simulator.world import build_world
 
 
-def _median_time(fn, repeats: int) -> float:
+def _median_time(fn, repeats: int, clock=time.perf_counter) -> float:
     times = []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = clock()
         fn()
-        times.append(time.perf_counter() - t0)
+        times.append(clock() - t0)
     return float(np.median(times))
 
 
@@ -54,7 +54,10 @@ def bench_rays(repeats: int, weather: str) -> None:
     w = WEATHER_PRESETS[weather]
     scan(scene, spec, state.pose, w, state.vehicles, rng)
     t_lidar = _median_time(lambda: scan(scene, spec, state.pose, w, state.vehicles, rng), repeats)
+    c_raw = _median_time(lambda: merged.run(origins, dirs32, output=1), repeats, time.process_time)
+    c_lidar = _median_time(lambda: scan(scene, spec, state.pose, w, state.vehicles, rng), repeats, time.process_time)
     print(f"rays per scan: {n} ({len(spec.elevations_deg)} channels x {spec.n_azimuth} azimuths)")
+    print(f"CPU time per scan: raw {c_raw * 1e3:.1f} ms, LiDAR {c_lidar * 1e3:.1f} ms = {100 * c_raw / c_lidar:.0f} % of raw")
     print(f"raw embreex (one merged BVH, first hit + normals): {n / t_raw / 1e6:.2f} M rays/s ({t_raw * 1e3:.1f} ms/scan)")
     print(f"LiDAR scan with {weather} (hits, intensity, weather effects): {n / t_lidar / 1e6:.2f} M rays/s "
           f"({t_lidar * 1e3:.1f} ms/scan) = {100 * t_raw / t_lidar:.0f} % of raw")
@@ -67,14 +70,15 @@ def bench_frames(frames: int) -> None:
     try:
         (root / "meta" / "frames").mkdir(parents=True)
         run_job((root, cfg, jobs[0], cfg.digest()))  # world build, caches
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         for job in jobs[1:]:
             run_job((root, cfg, job, cfg.digest()))
-        dt = time.perf_counter() - t0
+        dt, cpu = time.perf_counter() - t0, time.process_time() - c0
     finally:
         shutil.rmtree(root)
-    print(f"frames/s, one process (scan + image + labels + files): {(len(jobs) - 1) / dt:.2f} "
-          f"({1e3 * dt / (len(jobs) - 1):.0f} ms/frame)")
+    n = len(jobs) - 1
+    print(f"frames/s, one process (scan + image + labels + files): {n / dt:.2f} ({1e3 * dt / n:.0f} ms/frame wall, "
+          f"{1e3 * cpu / n:.0f} ms/frame CPU -> {547 * cpu / n / 2:.0f} s for 547 frames on 2 idle cores)")
 
 
 def _cpu_seconds() -> float:
