@@ -173,11 +173,11 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
                                 val_predictions_dir=run_dir / "predictions_val" / name)}
 
 
-def resolve(profile: str, models, out) -> tuple[RunConfig, list[str], Path]:
-    if profile not in PROFILES:
+def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple[RunConfig, list[str], Path]:
+    if config is None and profile not in PROFILES:
         raise ValueError(f"unknown profile {profile!r}; expected one of {', '.join(PROFILES)}")
     from models.zoo import MODEL_NAMES, available
-    cfg = PROFILES[profile]
+    cfg = config or PROFILES[profile]
     if cfg.device == "cuda":
         import torch
         if not torch.cuda.is_available():
@@ -192,10 +192,14 @@ def resolve(profile: str, models, out) -> tuple[RunConfig, list[str], Path]:
     return cfg, names, Path(out) if out else Path("reports") / profile
 
 
-def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime") -> Path:
-    """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory."""
+def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
+        config: RunConfig | None = None) -> Path:
+    """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory.
+
+    ``config`` replaces the profile's RunConfig (tests use a smaller one)."""
     from harness.report import render
-    cfg, names, run_dir = resolve(profile, models, out)
+    cfg, names, run_dir = resolve(profile, models, out, config)
+    profile = cfg.profile
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / "config.json", json.dumps({**asdict(cfg), "models": names, "runtime": runtime}, indent=1))
     stages = Stages(run_dir, progress)
