@@ -7,6 +7,7 @@ skips frames whose record, config and file hashes match (resume). dataset.json i
 """
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import json
 import multiprocessing as mp
@@ -162,6 +163,18 @@ def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None
     kitti.atomic_write_text(root / "meta" / "dataset.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
 
 
+def _worker_init() -> None:
+    """Keep freed buffers in the worker's heap (glibc): a scan allocates dozens of MB-sized
+    temporaries, and returning each to the OS costs page faults on the next frame (~10 % of
+    a frame). Only the worker processes this module starts are tuned; elsewhere a no-op."""
+    try:
+        libc = ctypes.CDLL(None)
+        libc.mallopt(-3, 1 << 29)  # M_MMAP_THRESHOLD: 512 MB
+        libc.mallopt(-1, 1 << 30)  # M_TRIM_THRESHOLD: 1 GB
+    except (OSError, AttributeError):
+        pass
+
+
 def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathers: list[str] | None = None,
              seed: int = 0, workers: int = 1, lidar_model: str = "physics", progress: bool = True,
              lidar_spec: LidarSpec | None = None) -> Path:
@@ -192,7 +205,7 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     else:
         chunk = max(1, len(jobs) // (workers * 8))
         method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
-        with mp.get_context(method).Pool(workers) as pool:
+        with mp.get_context(method).Pool(workers, initializer=_worker_init) as pool:
             for rec in pool.imap_unordered(run_job, jobs, chunksize=chunk):
                 records.append(rec)
                 bar.update()
