@@ -26,7 +26,7 @@ from harness.types import Sample
 from models.base import Detector
 from models.nms import nms_rotated
 from models.point_roi_pool import RoISetAbstraction, inside_rois, roi_point_pool
-from models.pointnet2 import FeaturePropagation, SetAbstraction, farthest_point_sample, shared_mlp
+from models.pointnet2 import FeaturePropagation, SetAbstraction, farthest_point_sample, group_points, shared_mlp
 from models.roi_head import (
     RefineHead,
     RoITargetConfig,
@@ -156,6 +156,31 @@ def bin_loss(pred: Tensor, bins: Tensor, res: Tensor, cfg: PointRCNNConfig) -> T
 # ---- network ---------------------------------------------------------------------------------
 
 
+def interpolate_3nn(unknown: Tensor, known: Tensor, known_feats: Tensor) -> Tensor:
+    """models.pointnet2.three_nn_interpolate with the distance floored by clamp(min=1e-8).
+
+    Coarse points are a subset of the fine ones, so zero distances are the rule. The
+    pointnet2 version adds 1e-8 instead; the onnxscript graph optimizer (optimize=True)
+    folds that addition away as "+ 0" and the exported graph then divides inf by inf.
+    """
+    far = known.new_full((3, 3), 1.0e4)  # padding points with zero features, metres
+    known_p = torch.cat([known, far], 0)  # (M + 3, 3)
+    feats_p = torch.cat([known_feats, known_feats.new_zeros(3, known_feats.shape[1])], 0)
+    d2 = ((unknown[:, None, :] - known_p[None, :, :]) ** 2).sum(-1)  # (N, M + 3) m^2
+    d2_nn, idx = torch.topk(d2, 3, dim=1, largest=False, sorted=True)  # (N, 3)
+    weight = 1.0 / torch.sqrt(d2_nn).clamp(min=1e-8)  # (N, 3)
+    weight = weight / weight.sum(1, keepdim=True)
+    return (group_points(feats_p, idx) * weight[:, :, None]).sum(1)  # (N, C)
+
+
+class FeaturePropagation3NN(FeaturePropagation):
+    """FeaturePropagation using interpolate_3nn."""
+
+    def forward(self, fine_xyz: Tensor, coarse_xyz: Tensor, fine_feats: Tensor, coarse_feats: Tensor) -> Tensor:
+        up = interpolate_3nn(fine_xyz, coarse_xyz, coarse_feats)  # (N, Cc)
+        return self.mlp(torch.cat([up, fine_feats], -1))
+
+
 class PointNet2Backbone(nn.Module):
     """MSG set abstraction down to sa_npoints[-1] centres, feature propagation back to P0."""
 
@@ -170,7 +195,7 @@ class PointNet2Backbone(nn.Module):
         self.fp = nn.ModuleList()
         for level in reversed(range(len(cfg.fp_mlps))):  # coarsest first
             coarse = channels[-1] if level == len(cfg.fp_mlps) - 1 else cfg.fp_mlps[level + 1][-1]
-            self.fp.append(FeaturePropagation([coarse + channels[level], *cfg.fp_mlps[level]]))
+            self.fp.append(FeaturePropagation3NN([coarse + channels[level], *cfg.fp_mlps[level]]))
         self.out_channels = cfg.fp_mlps[0][-1]
 
     def forward(self, xyz: Tensor, feats: Tensor) -> Tensor:
