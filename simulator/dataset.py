@@ -90,12 +90,21 @@ def max_frames(preset: str, n_weathers: int) -> int | float:
     return default_frames(preset, n_weathers) if preset == "sotif" else float("inf")
 
 
+def _spread(total: int, n: int) -> list[int]:
+    """`total` split over n parts as evenly as possible, the first parts one larger."""
+    return [total // n + (1 if i < total % n else 0) for i in range(n)]
+
+
 def plan_jobs(cfg: GenerateConfig) -> list[FrameJob]:
-    """Frame jobs in frame-id order with their split."""
+    """Frame jobs in frame-id order with their split.
+
+    SOTIF: a capped set keeps each weather's frames spread over the whole scenario run.
+    """
     if cfg.preset == "sotif":
         n_w = len(cfg.weathers)
-        counts = [cfg.frames // n_w + (1 if i < cfg.frames % n_w else 0) for i in range(n_w)]
-        specs = [(w, k) for w, c in zip(cfg.weathers, counts) for k in range(c)]
+        full = _spread(default_frames("sotif", n_w), n_w)  # recorded steps of a whole run
+        specs = [(w, int(k)) for w, c, f in zip(cfg.weathers, _spread(cfg.frames, n_w), full)
+                 for k in np.linspace(0, f - 1, c).round()] if cfg.frames else []
         n_val = int(round(cfg.frames * SOTIF_VAL / SOTIF_FRAMES))
         other = "test"
     else:

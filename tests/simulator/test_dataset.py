@@ -34,10 +34,12 @@ def test_files_parse_with_the_project_reader(sotif_set):
         labels = kitti.read_labels(kitti.frame_path(sotif_set, "label_2", fid))
         calib = kitti.read_calib(kitti.frame_path(sotif_set, "calib", fid))
         assert kitti.read_image(kitti.frame_path(sotif_set, "image_2", fid)).shape == (375, 1242, 3)
-        fast = row["fast_car_label_index"]
-        assert 0 <= fast < len(labels) and labels.name[fast] == "Car"
-        box = labels.to_lidar(calib)[fast]
-        assert 35 < box[0] < 70 and abs(box[1]) < 1.0  # the fast car drives ahead in the ego lane
+        # before the lane change the fast car leads in the ego lane, at the end the slow car does
+        lead = row["fast_car_label_index"] if row["scenario_time_s"] < row["lane_change_time_s"] else \
+            row["slow_car_label_index"]
+        assert 0 <= lead < len(labels) and labels.name[lead] == "Car"
+        box = labels.to_lidar(calib)[lead]
+        assert 35 < box[0] < 90 and abs(box[1]) < 1.0
     data = json.loads((sotif_set / "meta" / "dataset.json").read_text())
     assert data["seed"] == 3 and data["config"]["lidar"]["name"] == "HDL-64E"
     assert "training/velodyne/000000.bin" in data["files"] and "meta/frames.csv" in data["files"]
@@ -88,6 +90,9 @@ def test_split_plans():
     assert splits.count("test") == 492 and splits.count("val") == 55
     per = np.unique([j.weather for j in jobs], return_counts=True)[1]
     assert per.min() == 26 and per.max() == 27 and len(per) == 21
+    assert [j.step for j in jobs if j.weather == "ClearNoon"] == list(range(27))
+    capped = plan_jobs(GenerateConfig("sotif", 42, tuple(WEATHER_PRESETS), 0, LidarSpec()))
+    assert [j.step for j in capped if j.weather == "HardRainNight"] == [0, 25]
     train = plan_jobs(GenerateConfig("train", 400, ("ClearNoon", "ClearNight"), 0, LidarSpec()))
     assert [j.split for j in train].count("val") == 60 and len(train) == 400
 
