@@ -187,7 +187,7 @@ def render(scene: RayScene, lidar2img: np.ndarray, pose, mount_height: float, p:
     hits = scene.cast(cam_w, dirs_w)
     phase = rng.uniform(0, 2 * np.pi, 6)
     col = shade(hits, dirs_w, rot[:, 0], p, phase)
-    exposure = 1.0 if time_of_day(p) != "Night" else 2.5
+    exposure = (1.0 if time_of_day(p) != "Night" else 2.5) * (1.0 - 0.35 * p.precipitation / 100.0)  # rain darkening
     srgb = np.clip(col * exposure, 0, 1) ** (1 / 2.2)
     small = Image.fromarray((srgb.reshape(h, w, 3) * 255 + 0.5).astype(np.uint8), "RGB")
     img = small.resize((spec.width, spec.height), Image.BILINEAR)
