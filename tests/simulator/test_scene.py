@@ -92,3 +92,29 @@ def test_training_scenes_do_not_overlap():
         np.fill_diagonal(iou, 0)
         assert iou.max() == 0 and len(boxes) >= 3
         assert (boxes[:, 0] > -50).all() and (boxes[:, 0] < 105).all()
+
+
+def test_camera_brightness_follows_weather_and_cars_show_in_their_box(highway_scene):
+    from simulator.camera import CameraSpec, render
+    from simulator.labels import projected_boxes
+    from simulator.vehicles import Vehicle
+    from simulator.weather import WEATHER_PRESETS
+
+    spec = CameraSpec(width=300, height=90, downsample=2)
+    calib = kitti_calib(width=300, height=90, focal=175.0)
+    x, y, h = road_to_world(ROAD, np.array(150.0), np.array(lane_center(ROAD, 3)))
+    pose = Pose(float(x), float(y), float(h))
+    car = Vehicle("sedan", (4.75, 1.83, 1.45), "red", pose.x + 15 * np.cos(h), pose.y + 15 * np.sin(h), float(h), 25.0)
+    imgs = {}
+    for vehicles in ([], [car]):
+        highway_scene.set_vehicles(vehicles)
+        for name in ("ClearNoon", "HardRainNoon", "ClearNight"):
+            imgs[name, len(vehicles)] = render(highway_scene, calib.lidar2img(), pose, 1.73, WEATHER_PRESETS[name],
+                                               np.random.default_rng(0), spec).astype(float)
+    mean = {k: v.mean() for k, v in imgs.items()}
+    assert mean["ClearNoon", 0] > mean["HardRainNoon", 0] > mean["ClearNight", 0]
+    l, t, r, b = projected_boxes(lidar_boxes([car], pose, 1.73), calib)[0][0].astype(int)
+    inside = np.abs(imgs["ClearNoon", 1] - imgs["ClearNoon", 0])[t:b, l:r].mean()
+    outside = np.abs(imgs["ClearNoon", 1] - imgs["ClearNoon", 0])[:, :max(l - 10, 1)].mean()
+    assert inside > 20 and outside < 1
+    assert imgs["ClearNoon", 1][t:b, l:r, 0].mean() > imgs["ClearNoon", 1][t:b, l:r, 2].mean()  # red paint
