@@ -125,19 +125,40 @@ class RayScene:
         origin = np.asarray(origins, dtype=np.float64)
         origins = np.broadcast_to(origin.astype(np.float32), dirs.shape)
         st = _run(self._static, origins, dirs)
-        t = np.where(st["primID"] >= 0, st["tfar"], np.inf).astype(np.float64)
-        ng = st["Ng"].copy()
-        prim = st["primID"]
-        material = np.where(prim >= 0, self.world.material[np.maximum(prim, 0)], 0).astype(np.int64)
-        actor = np.where(prim >= 0, STATIC, MISS)
+        near = np.zeros(0, np.int64)
+        dy = {"tfar": np.zeros(0, np.float32), "primID": np.zeros(0, np.int32), "Ng": np.zeros((0, 3), np.float32)}
         if self._dynamic is not None:
             near = np.flatnonzero(self._candidates(origin, dirs))
             dy = _run(self._dynamic, origins[near], dirs[near])
-            td = np.where(dy["primID"] >= 0, dy["tfar"], np.inf)
-            nearer = td < t[near]
-            idx, p = near[nearer], dy["primID"][nearer]
-            t[idx] = td[nearer]
-            ng[idx] = dy["Ng"][nearer]
-            material[idx] = self._dyn_material[p]
-            actor[idx] = self._dyn_actor[p]
-        return Hits(t, unit_normals_facing(ng, dirs), material, actor)
+        dyn_mat = self._dyn_material if self._dynamic is not None else np.zeros(1, np.int64)
+        dyn_act = self._dyn_actor if self._dynamic is not None else np.zeros(1, np.int64)
+        return Hits(*merge_hits(st["tfar"], st["primID"], st["Ng"], self.world.material.astype(np.int64),
+                                near, dy["tfar"], dy["primID"], dy["Ng"], dyn_mat, dyn_act, dirs))
+
+
+@numba.njit(cache=True)
+def merge_hits(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, actor_d, dirs):
+    """Nearer of the static hit and the vehicle hit (rays `near` only) per ray.
+
+    Returns t (N,) (inf on miss), unit normals facing the ray (N, 3), material (N,) and actor
+    (N,) (vehicle index, STATIC or MISS).
+    """
+    n = t_s.shape[0]
+    t = np.full(n, np.inf)
+    ng = np.zeros((n, 3), np.float32)
+    material = np.zeros(n, np.int64)
+    actor = np.full(n, MISS, np.int64)
+    for i in range(n):
+        if prim_s[i] >= 0:
+            t[i] = t_s[i]
+            ng[i] = ng_s[i]
+            material[i] = mat_s[prim_s[i]]
+            actor[i] = STATIC
+    for j in range(near.shape[0]):
+        i = near[j]
+        if prim_d[j] >= 0 and t_d[j] < t[i]:
+            t[i] = t_d[j]
+            ng[i] = ng_d[j]
+            material[i] = mat_d[prim_d[j]]
+            actor[i] = actor_d[prim_d[j]]
+    return t, unit_normals_facing(ng, dirs), material, actor

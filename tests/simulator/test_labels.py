@@ -110,3 +110,32 @@ def test_unit_normals_facing_matches_numpy():
     ref = ng / np.linalg.norm(ng, axis=1, keepdims=True)
     ref *= np.where(np.sum(ref * d, 1) > 0, -1.0, 1.0)[:, None]
     np.testing.assert_allclose(unit_normals_facing(ng, d), ref, rtol=1e-6)
+
+
+def test_merged_hits_match_brute_force_nearest_triangle():
+    from simulator.prims import UNIT_BOX, place
+    from simulator.raycast import MISS, STATIC, RayScene
+    from simulator.vehicles import world_triangles
+    from simulator.world import World
+
+    rng = np.random.default_rng(5)
+    ground = place(UNIT_BOX, np.array([[0.0, 0.0, -0.5]]), np.array([200.0, 200.0, 1.0]), np.zeros(1))
+    world = World(ground.astype(np.float32), np.zeros(len(ground), np.uint8), None)
+    scene = RayScene(world)
+    cars = [Vehicle("sedan", (4.75, 1.83, 1.45), "red", float(x), float(y), float(a), 20.0)
+            for x, y, a in zip(rng.uniform(5, 30, 4), rng.uniform(-10, 10, 4), rng.uniform(-3, 3, 4))]
+    scene.set_vehicles(cars)
+    d = rng.normal(size=(4000, 3))
+    d[:, 2] = -np.abs(d[:, 2]) * 0.3
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    o = np.array([0.0, 0.0, 1.7])
+    hits = scene.cast(o, d)
+    from simulator.raycast import first_hit_distance
+    t_ground = first_hit_distance(ground, np.broadcast_to(o, d.shape), d)
+    t_cars = np.stack([first_hit_distance(world_triangles(c)[0], np.broadcast_to(o, d.shape), d) for c in cars], 1)
+    ref_t = np.minimum(t_ground, t_cars.min(1))
+    ref_actor = np.where(t_cars.min(1) < t_ground, t_cars.argmin(1), np.where(np.isfinite(t_ground), STATIC, MISS))
+    np.testing.assert_allclose(hits.t, ref_t, rtol=1e-5)
+    np.testing.assert_array_equal(hits.actor, ref_actor)
+    assert (hits.actor >= 0).sum() > 50
+    assert np.allclose(np.linalg.norm(hits.normal[np.isfinite(hits.t)], axis=1), 1.0, atol=1e-5)
