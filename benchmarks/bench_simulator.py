@@ -18,7 +18,7 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
 from simulator import generate
-from simulator.dataset import GenerateConfig, run_job, plan_jobs
+from simulator.dataset import GenerateConfig, _worker_init, plan_jobs, run_job
 from simulator.lidar import LidarSpec, ray_directions, scan
 from simulator.raycast import RayScene
 from simulator.road import RoadConfig
@@ -112,6 +112,9 @@ def main() -> None:
     ap.add_argument("--skip-full", action="store_true", help="skip the full SOTIF generation")
     args = ap.parse_args()
     print(f"load average (1 min) at start: {_load()} on {os.cpu_count()} cores")
+    bench_rays(args.repeats, args.weather)
+    print("-- again with the generator workers' malloc settings (simulator.dataset._worker_init):")
+    _worker_init()
     bench_rays(args.repeats, args.weather)
     bench_frames(args.frames)
     if not args.skip_full:
