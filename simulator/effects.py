@@ -8,7 +8,8 @@
   gives ~2.8e-3 1/m at 25 mm/h (in line with measured 905 nm rain extinction) where
   0.01 R^0.6 read in 1/m gives 25x more, and needs no fitted constant.
 - Power threshold drop-out: P = rho cos(theta) T^2 / r^2 against the sensor's minimum power.
-- Range noise in rain (Goodin et al. 2019): sigma = 0.02 r (1 - exp(-R))^2.
+- Range noise in rain (Goodin et al. 2019): sigma = 0.02 r (1 - exp(-R))^2, i.e. ~2 % of the
+  range for any rain above ~3 mm/h (LidarSpec.rain_range_noise scales it).
 - Raindrop back-scatter (LISA, Kilic et al. 2021): a ray returns from a drop with probability
   1 - exp(-k alpha L) over the first L metres; drop range drawn with density ~ 1/r^2.
 - Wet road: the unpolarised Fresnel reflectance F of water (n = 1.33) sends that share of the
@@ -32,9 +33,9 @@ MP_N0 = 8000.0  # Marshall-Palmer intercept, m^-3 mm^-1
 Q_EXT = 2.0  # extinction efficiency of drops >> wavelength
 WATER_INDEX = 1.33
 WET_DARKENING = 0.4  # relative albedo loss of a soaked surface
-BACKSCATTER_K = 0.12  # LISA-style detectable drop returns per unit optical depth
+BACKSCATTER_K = 0.12  # drop returns per unit optical depth: ~0.5 % of rays at 50 mm/h
 FOG_BETA_PER_MOR = 0.046  # Hahner et al.: beta = 0.046 / MOR
-FOG_BACKSCATTER_K = 8.0  # detectable fog returns per unit back-scatter depth
+FOG_BACKSCATTER_K = 8.0  # fog returns per unit back-scatter depth: ~1 % of rays at MOR 1 km
 CARLA_ATTENUATION = 0.004
 CARLA_DROPOFF_GENERAL = 0.45
 CARLA_DROPOFF_LIMIT = 0.8
