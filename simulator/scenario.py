@@ -4,6 +4,9 @@ SOTIF scenario (Patel & Jung 2024): the ego drives in lane 3 at 90 km/h behind a
 (ACC gap keeping); a slow car drives at 60 km/h ahead in the same lane. When the fast car is
 10 m (bumper to bumper) behind the slow car it changes to lane 4; the ego's ACC then takes
 the slow car as its target and decelerates. 10 Hz simulation, every 5th step recorded.
+
+Training scenes never reproduce it: they are independent snapshots of random traffic (their
+own random streams and world clutter), not the scripted cut-out with its fixed cars.
 """
 from __future__ import annotations
 
