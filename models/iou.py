@@ -25,21 +25,28 @@ def corners_bev(boxes: Tensor) -> Tensor:
     return torch.stack([x, y], dim=-1)
 
 
+def _next(x: Tensor) -> Tensor:
+    """x shifted by one along dim 1 (cyclic): row i holds x[:, i + 1] (torch.roll guards on
+    the size of data-dependent shapes during export; index_select does not)."""
+    n = x.shape[1]
+    return x.index_select(1, torch.tensor(list(range(1, n)) + [0]))
+
+
 def _cross(a: Tensor, b: Tensor) -> Tensor:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
 def _inside(points: Tensor, quad: Tensor) -> Tensor:
     """(M, P) bool: points (M, P, 2) inside (or on) the CCW quads (M, 4, 2)."""
-    edge = torch.roll(quad, -1, dims=1) - quad  # (M, 4, 2)
+    edge = _next(quad) - quad  # (M, 4, 2)
     rel = points[:, :, None, :] - quad[:, None, :, :]  # (M, P, 4, 2)
     return (_cross(edge[:, None], rel) >= -_EPS).all(dim=-1)
 
 
 def _crossings(qa: Tensor, qb: Tensor) -> tuple[Tensor, Tensor]:
     """Edge-edge crossing points (M, 16, 2) and validity (M, 16) of quads (M, 4, 2)."""
-    p, r = qa[:, :, None, :], (torch.roll(qa, -1, dims=1) - qa)[:, :, None, :]  # (M, 4, 1, 2)
-    q, s = qb[:, None, :, :], (torch.roll(qb, -1, dims=1) - qb)[:, None, :, :]  # (M, 1, 4, 2)
+    p, r = qa[:, :, None, :], (_next(qa) - qa)[:, :, None, :]  # (M, 4, 1, 2)
+    q, s = qb[:, None, :, :], (_next(qb) - qb)[:, None, :, :]  # (M, 1, 4, 2)
     denom = _cross(r, s)  # (M, 4, 4)
     ok = denom.abs() > _EPS
     safe = torch.where(ok, denom, torch.ones_like(denom))
@@ -62,7 +69,7 @@ def _polygon_area(points: Tensor, valid: Tensor) -> Tensor:
     ordered = torch.gather(rel, 1, order[..., None].expand(-1, -1, 2))  # (M, P, 2)
     ok = torch.gather(valid, 1, order)  # (M, P) valid first
     ordered = torch.where(ok[..., None], ordered, ordered[:, :1, :])
-    area = 0.5 * _cross(ordered, torch.roll(ordered, -1, dims=1)).sum(dim=1)
+    area = 0.5 * _cross(ordered, _next(ordered)).sum(dim=1)
     return torch.where(count >= 3, area.abs(), torch.zeros_like(area))
 
 

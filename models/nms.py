@@ -25,14 +25,19 @@ def suppress_fixed_point(suppress: Tensor) -> Tensor:
         new = ~((keep[:, None] & suppress).sum(dim=0) > 0)
         return new, (new != keep).sum() > 0  # sum, not any: an empty ReduceMax is not False
 
-    keep0 = torch.ones(suppress.shape[0], dtype=torch.bool)
-    keep, _ = while_loop(_cond, body, (keep0, torch.ones((), dtype=torch.bool)))
+    keep = torch.ones(suppress.shape[0], dtype=torch.bool)
+    if torch.compiler.is_exporting():
+        keep, _ = while_loop(_cond, body, (keep, torch.ones((), dtype=torch.bool)))
+        return keep
+    changed = torch.ones((), dtype=torch.bool)
+    while bool(changed):  # eager: the same iteration as a Python loop (while_loop would compile)
+        keep, changed = body(keep, changed)
     return keep
 
 
 def nms_rotated(boxes: Tensor, scores: Tensor, iou_thresh: float) -> Tensor:
     """(M,) int64 indices of the boxes (K, 7) kept by greedy rotated BEV NMS, best first."""
-    order = torch.argsort(scores, descending=True)  # (K,)
+    order = topk_indices(scores, scores.shape[0])  # (K,) best first, ties by lower index
     sorted_boxes = boxes[order]
     over = iou_bev(sorted_boxes, sorted_boxes) > iou_thresh  # (K, K)
     keep = suppress_fixed_point(torch.triu(over, diagonal=1))
@@ -40,8 +45,11 @@ def nms_rotated(boxes: Tensor, scores: Tensor, iou_thresh: float) -> Tensor:
 
 
 def topk_indices(scores: Tensor, k: int) -> Tensor:
-    """(min(k, N),) indices of the largest scores, best first."""
-    return torch.topk(scores, min(k, scores.shape[0])).indices
+    """(min(k, N),) indices of the largest scores, best first; ties by lower index, as ONNX
+    TopK does (torch.topk leaves tie order unspecified)."""
+    if torch.compiler.is_exporting():
+        return torch.topk(scores, min(k, scores.shape[0])).indices  # ONNX TopK: ties by index
+    return torch.sort(scores, descending=True, stable=True).indices[:k]
 
 
 def select_detections(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: int,

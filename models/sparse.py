@@ -27,6 +27,8 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor, nn
 
+from models.vfe import RowBatchNorm
+
 
 def _triple(v) -> tuple[int, int, int]:
     return tuple(v) if isinstance(v, (tuple, list)) else (v, v, v)
@@ -105,6 +107,7 @@ def strided_out_coords(x: SparseTensor, kernel, stride, padding) -> tuple[Tensor
     ok = ((cand % s) == 0).all(-1) & ((cand >= 0) & (cand < hi * s)).all(-1)  # (V, K)
     lin = linear_index(torch.div(cand, s, rounding_mode="floor")[ok], shape)  # (M,)
     uniq = torch.unique(lin)  # (V_out,)
+    torch._check(uniq.shape[0] <= math.prod(shape))  # keeps export's size bounds within int64
     _, h, w = shape
     coords = torch.stack([uniq // (h * w), (uniq // w) % h, uniq % w], dim=1)
     return coords, shape
@@ -147,7 +150,7 @@ class _SparseConvBase(nn.Module):
         nn.init.kaiming_uniform_(self.weight.view(k * c_in, c_out).T, a=math.sqrt(5))
         self.bias = nn.Parameter(torch.zeros(c_out)) if bias else None
 
-    def _apply(self, features: Tensor, table: Tensor) -> Tensor:
+    def _conv(self, features: Tensor, table: Tensor) -> Tensor:
         out = gather_gemm(features, table, self.weight)
         return out if self.bias is None else out + self.bias
 
@@ -159,7 +162,7 @@ class SubMConv3d(_SparseConvBase):
         super().__init__(c_in, c_out, kernel, bias)
 
     def forward(self, x: SparseTensor) -> SparseTensor:
-        return x.with_features(self._apply(x.features, subm_table(x, self.kernel)))
+        return x.with_features(self._conv(x.features, subm_table(x, self.kernel)))
 
 
 class SparseConv3d(_SparseConvBase):
@@ -172,7 +175,7 @@ class SparseConv3d(_SparseConvBase):
     def forward(self, x: SparseTensor) -> SparseTensor:
         coords, shape = strided_out_coords(x, self.kernel, self.stride, self.padding)
         table = strided_table(x, coords, self.kernel, self.stride, self.padding)
-        return SparseTensor(self._apply(x.features, table), coords, shape)
+        return SparseTensor(self._conv(x.features, table), coords, shape)
 
 
 class SparseInverseConv3d(_SparseConvBase):
@@ -184,7 +187,7 @@ class SparseInverseConv3d(_SparseConvBase):
 
     def forward(self, x: SparseTensor, target: SparseTensor) -> SparseTensor:
         table = inverse_table(x, target, self.kernel, self.stride, self.padding)
-        return target.with_features(self._apply(x.features, table))
+        return target.with_features(self._conv(x.features, table))
 
 
 class SparseBNReLU(nn.Module):
@@ -192,7 +195,7 @@ class SparseBNReLU(nn.Module):
 
     def __init__(self, channels: int):
         super().__init__()
-        self.norm = nn.BatchNorm1d(channels, eps=1e-3, momentum=0.01)
+        self.norm = RowBatchNorm(channels, eps=1e-3, momentum=0.01)
 
     def forward(self, x: SparseTensor) -> SparseTensor:
         return x.with_features(torch.relu(self.norm(x.features)))

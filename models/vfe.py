@@ -42,6 +42,17 @@ def scatter_max_nonneg(values: Tensor, index: Tensor, n: int) -> Tensor:
     return out.scatter_reduce(0, idx, values, "amax", include_self=True)
 
 
+class RowBatchNorm(nn.BatchNorm1d):
+    """BatchNorm1d over rows (P, C) whose inference form is a plain affine map, so that a
+    data-dependent number of rows exports (F.batch_norm guards on the size)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.training:
+            return super().forward(x)
+        scale = self.weight / torch.sqrt(self.running_var + self.eps)  # (C,)
+        return x * scale + (self.bias - self.running_mean * scale)
+
+
 class MeanVFE(nn.Module):
     """Voxel feature = mean of its points (x, y, z, intensity). No parameters."""
 
@@ -64,7 +75,7 @@ class PillarVFE(nn.Module):
         self.grid = grid
         self.out_channels = out_channels
         self.linear = nn.Linear(10, out_channels, bias=False)
-        self.norm = nn.BatchNorm1d(out_channels, eps=1e-3, momentum=0.01)
+        self.norm = RowBatchNorm(out_channels, eps=1e-3, momentum=0.01)
 
     def decorate(self, voxels: Voxels) -> Tensor:
         """(P, 10) decorated points."""

@@ -17,6 +17,7 @@ Both return :class:`Voxels`, a point list with a point -> voxel index, which eve
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -91,6 +92,7 @@ def dynamic_voxelize(points: Tensor, grid: Grid) -> Voxels:
     pts = filter_range(points, grid.pc_range)  # (P, 4)
     linear = _linear_index(pts, grid)  # (P,)
     uniq, inverse = torch.unique(linear, return_inverse=True)  # (V,), (P,)
+    torch._check(uniq.shape[0] <= math.prod(grid.shape))  # keeps export's size bounds in int64
     return Voxels(pts, inverse, _coords_of(uniq, grid.shape), grid.shape)
 
 
@@ -114,6 +116,7 @@ def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) 
     pts = filter_range(points, grid.pc_range)  # (P, 4)
     linear = _linear_index(pts, grid)  # (P,)
     uniq, inverse = torch.unique(linear, return_inverse=True)  # (V,), (P,)
+    torch._check(uniq.shape[0] <= math.prod(grid.shape))
     v, p = uniq.shape[0], pts.shape[0]
     arange = torch.arange(p, dtype=torch.long)
     first = torch.full((v,), p, dtype=torch.long).scatter_reduce(0, inverse, arange, "amin")  # (V,)

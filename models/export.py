@@ -1,0 +1,149 @@
+"""ONNX export following the contract of DESIGN.md.
+
+``export_onnx(model, path, metadata) -> dict`` exports one frame's forward with the dynamo
+exporter (opset 18, dynamic number of points), checks the file with ``onnx.checker``, writes
+the ``sotif.*`` metadata_props and the op histogram (JSON under ``sotif.op_histogram``) and
+writes the file atomically; it returns the op histogram. Camera models (``uses_camera``) take
+``image`` [1, 3, H, W] and ``lidar2img`` [4, 4] too, with (H, W) from the model's
+``image_hw`` attribute (or ``cfg.image_hw``).
+
+``export_checkpoint(ckpt, out) -> Path`` exports a checkpoint of ``harness.train.train``.
+"""
+from __future__ import annotations
+
+import collections
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+
+from models.base import Detector
+
+OPSET = 18
+
+
+class ExportError(RuntimeError):
+    """The model could not be exported or the result breaks the contract."""
+
+
+def image_hw(model: Detector) -> tuple[int, int]:
+    hw = getattr(model, "image_hw", None) or getattr(getattr(model, "cfg", None), "image_hw", None)
+    if hw is None:
+        raise ExportError(f"{model.architecture}: camera model without image_hw (H, W)")
+    return tuple(int(v) for v in hw)
+
+
+def example_inputs(model: Detector, num_points: int = 2000, seed: int = 0) -> tuple[torch.Tensor, ...]:
+    """Random inputs (points spread over the model's range; image/lidar2img for camera models)."""
+    gen = torch.Generator().manual_seed(seed)
+    pc_range = torch.tensor(model.cfg.pc_range, dtype=torch.float32)
+    xyz = pc_range[:3] + torch.rand(num_points, 3, generator=gen) * (pc_range[3:] - pc_range[:3])
+    points = torch.cat([xyz, torch.rand(num_points, 1, generator=gen)], dim=1)
+    if not model.uses_camera:
+        return (points,)
+    h, w = image_hw(model)
+    lidar2img = torch.eye(4)
+    return points, torch.rand(1, 3, h, w, generator=gen), lidar2img
+
+
+def op_histogram(model_proto: onnx.ModelProto) -> dict[str, int]:
+    """Count of each op type, including ops inside Loop / If subgraphs."""
+    counts: collections.Counter = collections.Counter()
+
+    def walk(graph: onnx.GraphProto) -> None:
+        for node in graph.node:
+            counts[node.op_type] += 1
+            for attr in node.attribute:
+                if attr.type == onnx.AttributeProto.GRAPH:
+                    walk(attr.g)
+                for g in attr.graphs:
+                    walk(g)
+
+    walk(model_proto.graph)
+    for fn in model_proto.functions:
+        for node in fn.node:
+            counts[node.op_type] += 1
+    return dict(sorted(counts.items()))
+
+
+def _atomic_save(model_proto: onnx.ModelProto, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        onnx.save(model_proto, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def contract_metadata(model: Detector, metadata: dict[str, str]) -> dict[str, str]:
+    meta = {"sotif.contract": "1", "sotif.architecture": model.architecture, "sotif.classes": "Car",
+            "sotif.point_cloud_range": json.dumps([float(v) for v in model.cfg.pc_range]),
+            "sotif.two_stage": str(bool(model.two_stage)).lower(),
+            "sotif.uses_camera": str(bool(model.uses_camera)).lower()}
+    meta.update({k: str(v) for k, v in metadata.items()})
+    for key in ("sotif.profile", "sotif.data_hash", "sotif.config_hash"):
+        meta.setdefault(key, "")
+    return meta
+
+
+def export_onnx(model: Detector, path, metadata: dict[str, str]) -> dict[str, int]:
+    """Export ``model`` to ONE self-contained ONNX file; returns the op histogram."""
+    path = Path(path)
+    model = model.eval().cpu()
+    inputs = example_inputs(model)
+    names = list(model.input_names)
+    dynamic = [{0: torch.export.Dim("num_points", min=0)}] + [None] * (len(inputs) - 1)
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            program = torch.onnx.export(model, inputs, dynamo=True, input_names=names,
+                                        output_names=list(model.output_names),
+                                        dynamic_shapes=tuple(dynamic), opset_version=OPSET,
+                                        optimize=True, verbose=False)
+            program.save(str(Path(tmp) / "model.onnx"))
+        except Exception as exc:
+            raise ExportError(f"{model.architecture}: ONNX export failed: {exc}") from exc
+        proto = onnx.load(str(Path(tmp) / "model.onnx"))
+    onnx.checker.check_model(proto, full_check=True)
+    hist = op_histogram(proto)
+    meta = contract_metadata(model, metadata)
+    meta["sotif.op_histogram"] = json.dumps(hist)
+    del proto.metadata_props[:]
+    for key, value in meta.items():
+        proto.metadata_props.add(key=key, value=value)
+    _atomic_save(proto, path)
+    return hist
+
+
+def export_checkpoint(ckpt, out, expected_model: str | None = None) -> Path:
+    """Export a training checkpoint to ``out`` (.onnx) with its profile and hashes.
+
+    ``expected_model``: refuse (ValueError) a checkpoint of another model."""
+    from models.zoo import load_checkpoint
+
+    model, meta = load_checkpoint(ckpt)
+    if expected_model is not None and meta["model"] != expected_model:
+        raise ValueError(f"{ckpt}: checkpoint of {meta['model']!r}, not {expected_model!r}")
+    export_onnx(model, out, {"sotif.profile": meta.get("profile", ""),
+                             "sotif.data_hash": meta.get("data_hash", ""),
+                             "sotif.config_hash": meta.get("config_hash", ""),
+                             "sotif.epoch": str(meta.get("epoch", ""))})
+    return Path(out)
+
+
+def run_onnx(path, *inputs: np.ndarray) -> list[np.ndarray]:
+    """Run an exported file with onnxruntime on numpy inputs (single-threaded, CPU)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.log_severity_level = 3
+    sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+    names = [i.name for i in sess.get_inputs()]
+    return sess.run(None, dict(zip(names, inputs)))

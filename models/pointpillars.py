@@ -1,0 +1,70 @@
+"""PointPillars (Lang et al., CVPR 2019).
+
+    points --hard voxelization (pillars)--> PFN (10-ch decoration, Linear-BN-ReLU, max)
+           --scatter--> pseudo-image (1, C, H, W) --3-block 2D backbone--> anchor head --> NMS
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+from models.anchor_head import AnchorHead, HeadConfig
+from models.backbone2d import BEVBackbone, scatter_to_bev
+from models.single_stage import AnchorDetector
+from models.vfe import PillarVFE
+from models.voxelize import Grid, hard_voxelize
+
+
+@dataclass(frozen=True)
+class PointPillarsConfig:
+    pc_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 1.0)  # metres, x0 y0 z0 x1 y1 z1
+    voxel_size: tuple[float, float, float] = (0.25, 0.25, 4.0)  # pillar size, metres
+    max_points: int = 32  # per pillar
+    max_voxels: int = 16000  # pillars
+    pfn_channels: int = 32
+    layers: tuple[int, ...] = (2, 3, 3)
+    strides: tuple[int, ...] = (2, 2, 2)
+    filters: tuple[int, ...] = (32, 64, 128)
+    upsample_strides: tuple[float, ...] = (1, 2, 4)
+    upsample_filters: tuple[int, ...] = (64, 64, 64)
+    head: HeadConfig = HeadConfig(anchor_z=-1.0)
+
+
+CONFIGS = {
+    "tiny": PointPillarsConfig(pc_range=(0.0, -8.0, -3.0, 16.0, 8.0, 1.0), voxel_size=(0.5, 0.5, 4.0),
+                               max_points=16, max_voxels=2000, pfn_channels=8, layers=(1, 1),
+                               strides=(2, 2), filters=(8, 16), upsample_strides=(1, 2),
+                               upsample_filters=(8, 8), head=HeadConfig(anchor_z=-1.0, nms_pre=64)),
+    "compact": PointPillarsConfig(),
+    "kitti": PointPillarsConfig(  # OpenPCDet tools/cfgs/kitti_models/pointpillar.yaml
+        pc_range=(0.0, -39.68, -3.0, 69.12, 39.68, 1.0), voxel_size=(0.16, 0.16, 4.0), max_points=32,
+        max_voxels=40000, pfn_channels=64, layers=(3, 5, 5), strides=(2, 2, 2), filters=(64, 128, 256),
+        upsample_strides=(1, 2, 4), upsample_filters=(128, 128, 128),
+        head=HeadConfig(anchor_z=-1.0, nms_pre=4096, nms_iou=0.01, max_out=500)),
+}
+
+
+class PointPillars(AnchorDetector):
+    architecture = "pointpillars"
+
+    def __init__(self, cfg: PointPillarsConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.grid = Grid(cfg.pc_range, cfg.voxel_size)
+        self.vfe = PillarVFE(self.grid, cfg.pfn_channels)
+        self.backbone2d = BEVBackbone(cfg.pfn_channels, cfg.layers, cfg.strides, cfg.filters,
+                                      cfg.upsample_strides, cfg.upsample_filters)
+        _, h, w = self.grid.shape
+        stride = round(cfg.strides[0] / cfg.upsample_strides[0])  # output stride of the backbone
+        self.head = AnchorHead(self.backbone2d.out_channels, (h // stride, w // stride), cfg.pc_range,
+                               cfg.head)
+
+    def bev(self, points: Tensor) -> Tensor:
+        """points (N, 4) -> pseudo-image (1, C, H, W), one cell per pillar."""
+        pillars = hard_voxelize(points, self.grid, self.cfg.max_points, self.cfg.max_voxels)
+        return scatter_to_bev(self.vfe(pillars), pillars.coords, pillars.shape)
+
+
+def build(profile: str = "compact") -> PointPillars:
+    return PointPillars(CONFIGS[profile])

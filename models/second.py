@@ -1,0 +1,84 @@
+"""SECOND (Yan et al., Sensors 2018), OpenPCDet layout.
+
+    points --hard voxelization (<= 5 points / voxel)--> mean VFE (V, 4)
+           --sparse 3D backbone: SubM stem, 3 strided stages (+ SubM), z-collapse-->
+           height compression (1, C*D, H, W) --2D backbone (deconv concat)--> anchor head --> NMS
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from torch import Tensor
+
+from models.anchor_head import AnchorHead, HeadConfig
+from models.backbone2d import BEVBackbone
+from models.single_stage import AnchorDetector
+from models.sparse import SparseTensor, height_compress
+from models.vfe import MeanVFE
+from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig, output_shape
+from models.voxelize import Grid, Voxels, hard_voxelize
+
+
+@dataclass(frozen=True)
+class SECONDConfig:
+    pc_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 1.0)  # metres
+    voxel_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # metres
+    max_points: int = 5  # per voxel
+    max_voxels: int = 40000
+    backbone3d: VoxelBackboneConfig = VoxelBackboneConfig(
+        16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 1), StageSpec(64, (2, 2, 2), (1, 1, 1), 1),
+             StageSpec(64, (2, 1, 1), (0, 1, 1), 1)), 64, (1, 0, 0))
+    layers: tuple[int, ...] = (2, 2)
+    strides: tuple[int, ...] = (1, 2)
+    filters: tuple[int, ...] = (64, 128)
+    upsample_strides: tuple[float, ...] = (2, 4)
+    upsample_filters: tuple[int, ...] = (64, 64)
+    head: HeadConfig = HeadConfig(anchor_z=-1.0)
+
+
+TINY = SECONDConfig(
+    pc_range=(0.0, -8.0, -3.0, 16.0, 8.0, 1.0), voxel_size=(0.4, 0.4, 0.4), max_points=5, max_voxels=3000,
+    backbone3d=VoxelBackboneConfig(8, (StageSpec(8, (2, 2, 2), (1, 1, 1), 0), StageSpec(16, (2, 2, 2), (1, 1, 1), 0),
+                                       StageSpec(16, (2, 1, 1), (0, 1, 1), 0)), 16, (1, 0, 0)),
+    layers=(1,), strides=(1,), filters=(16,), upsample_strides=(2,), upsample_filters=(16,),
+    head=HeadConfig(anchor_z=-1.0, nms_pre=64))
+KITTI = SECONDConfig(  # OpenPCDet tools/cfgs/kitti_models/second.yaml
+    pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), voxel_size=(0.05, 0.05, 0.1), max_points=5, max_voxels=40000,
+    backbone3d=VoxelBackboneConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2), StageSpec(64, (2, 2, 2), (1, 1, 1), 2),
+                                        StageSpec(64, (2, 2, 2), (1, 1, 1), 2)), 128, (0, 0, 0)),
+    layers=(5, 5), strides=(1, 2), filters=(128, 256), upsample_strides=(1, 2), upsample_filters=(256, 256),
+    head=HeadConfig(anchor_z=-1.0, nms_pre=4096, nms_iou=0.01, max_out=500))
+CONFIGS = {"tiny": TINY, "compact": SECONDConfig(), "kitti": KITTI}
+
+
+class SECOND(AnchorDetector):
+    """Also the network of DV-SECOND, which only overrides :meth:`voxelize`."""
+
+    architecture = "second"
+
+    def __init__(self, cfg):
+        super().__init__()
+        self.cfg = cfg
+        self.grid = Grid(cfg.pc_range, cfg.voxel_size)
+        self.vfe = MeanVFE()
+        self.backbone3d = VoxelBackbone(MeanVFE.out_channels, cfg.backbone3d)
+        d, h, w = output_shape(self.grid.shape, cfg.backbone3d)
+        self.backbone2d = BEVBackbone(cfg.backbone3d.out_channels * d, cfg.layers, cfg.strides, cfg.filters,
+                                      cfg.upsample_strides, cfg.upsample_filters)
+        up = cfg.upsample_strides[0] / cfg.strides[0]  # BEV map -> head map scale
+        self.head = AnchorHead(self.backbone2d.out_channels, (round(h * up), round(w * up)), cfg.pc_range,
+                               cfg.head)
+
+    def voxelize(self, points: Tensor) -> Voxels:
+        return hard_voxelize(points, self.grid, self.cfg.max_points, self.cfg.max_voxels)
+
+    def bev(self, points: Tensor) -> Tensor:
+        """points (N, 4) -> BEV map (1, C*D, H, W) of the sparse backbone's output."""
+        voxels = self.voxelize(points)
+        x = SparseTensor(self.vfe(voxels), voxels.coords, voxels.shape)  # (V, 4) mean point
+        out, _ = self.backbone3d(x)
+        return height_compress(out)
+
+
+def build(profile: str = "compact") -> SECOND:
+    return SECOND(CONFIGS[profile])
