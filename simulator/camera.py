@@ -1,6 +1,7 @@
 """Front camera rendered by ray casting at a reduced resolution and upsampled.
 
-Shading: Lambert sun light (direction from the preset's sun altitude) + sky ambient, emissive
+Shading: Lambert sun light (direction from the preset's sun altitude) with ray-cast shadows,
+sky ambient, emissive
 head/tail lights, the ego's headlights at night, sky gradient with procedural clouds,
 distance haze from fog and rain, wet-road sky reflections (Fresnel), rain darkening and
 streaks. Rays come from the calibration's lidar2img, so any KITTI calib renders consistently.
@@ -84,13 +85,26 @@ def _light(p: WeatherPreset) -> tuple[float, float]:
     return 1.6 * sun ** 0.5 if sun > 0 else 0.0, ambient
 
 
-def shade(hits, dirs_w: np.ndarray, ego_fwd: np.ndarray, p: WeatherPreset, phase: np.ndarray) -> np.ndarray:
-    """(N, 3) linear RGB of camera rays given their hits."""
+def sun_visible(scene: RayScene, cam_w: np.ndarray, dirs_w: np.ndarray, hits, p: WeatherPreset) -> np.ndarray:
+    """(N,) bool: the hit point sees the sun (shadow rays); all False when the sun is down."""
+    sun = sun_direction(p)
+    lit = np.isfinite(hits.t) & (hits.normal @ sun > 0) & (p.sun_altitude_angle > 0)
+    idx = np.flatnonzero(lit)
+    if len(idx) == 0:
+        return lit
+    pts = cam_w + dirs_w[idx] * hits.t[idx, None] + hits.normal[idx] * 0.02
+    lit[idx] = ~np.isfinite(scene.cast(pts, np.broadcast_to(sun, pts.shape).copy()).t)
+    return lit
+
+
+def shade(hits, dirs_w: np.ndarray, lit: np.ndarray, ego_fwd: np.ndarray, p: WeatherPreset,
+          phase: np.ndarray) -> np.ndarray:
+    """(N, 3) linear RGB of camera rays given their hits and which hit points see the sun."""
     hit = np.isfinite(hits.t)
     t = np.where(hit, hits.t, 0.0)
     sun, amb = _light(p)
     alb = ALBEDO[hits.material]
-    lam = np.clip(hits.normal @ sun_direction(p), 0.0, None)
+    lam = np.clip(hits.normal @ sun_direction(p), 0.0, None) * lit
     col = alb * (amb + sun * lam)[:, None]
     night = time_of_day(p) == "Night"
     col += EMISSION[hits.material] * (1.0 if night else 0.12)
@@ -186,7 +200,7 @@ def render(scene: RayScene, lidar2img: np.ndarray, pose, mount_height: float, p:
     cam_w = rot @ centre + np.array([pose.x, pose.y, mount_height])
     hits = scene.cast(cam_w, dirs_w)
     phase = rng.uniform(0, 2 * np.pi, 6)
-    col = shade(hits, dirs_w, rot[:, 0], p, phase)
+    col = shade(hits, dirs_w, sun_visible(scene, cam_w, dirs_w, hits, p), rot[:, 0], p, phase)
     exposure = (1.0 if time_of_day(p) != "Night" else 2.5) * (1.0 - 0.35 * p.precipitation / 100.0)  # rain darkening
     srgb = np.clip(col * exposure, 0, 1) ** (1 / 2.2)
     small = Image.fromarray((srgb.reshape(h, w, 3) * 255 + 0.5).astype(np.uint8), "RGB")
