@@ -1,0 +1,54 @@
+"""The benchmark pipeline on a tiny configuration: end to end, skip when current, resume."""
+import json
+
+import pytest
+
+from harness.run import RunConfig, run
+
+TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2)
+
+
+def stage_keys(run_dir):
+    return {p.stem: p.read_text() for p in (run_dir / ".stages").glob("*.json")}
+
+
+def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
+    out = tmp_path / "run"
+    # 1. interrupted after the data is simulated, while training
+    def interrupted(*a, **k):
+        raise KeyboardInterrupt
+    monkeypatch.setattr("harness.train.train", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        run(models=["pointpillars"], out=out, progress=False, config=TINY)
+    done = stage_keys(out)
+    assert set(done) == {"simulate_train", "simulate_sotif"}
+    monkeypatch.undo()
+    # 2. resumed: the simulation is not redone, the rest runs to the report
+    calls = []
+    import simulator
+    real_generate = simulator.generate
+    monkeypatch.setattr(simulator, "generate", lambda *a, **k: calls.append(a) or real_generate(*a, **k))
+    run(models=["pointpillars"], out=out, progress=False, config=TINY)
+    assert calls == []
+    summary = json.loads((out / "results.json").read_text())
+    assert summary["schema"] == "sotif-bench/run/1" and list(summary["models"]) == ["pointpillars"]
+    for rel in ("config.json", "models/pointpillars.onnx", "predictions/pointpillars/predict.json",
+                "results/pointpillars.json", "tables/weather_headline.csv", "report.md", "index.html"):
+        assert (out / rel).is_file(), rel
+    res = json.loads((out / "results/pointpillars.json").read_text())
+    assert set(res["groups_by"]) == {"weather", "time_of_day", "precipitation_class"}
+    from harness.kitti import read_frames_meta, read_image_set
+    meta = read_frames_meta(out / "data/sotif/meta/frames.csv").set_index("frame_id")
+    test_weathers = set(meta.loc[read_image_set(out / "data/sotif/ImageSets/test.txt"), "weather"])
+    assert set(res["groups"]["rows"]) == test_weathers and len(test_weathers) > 15
+    # 3. nothing changed: every stage is skipped (records untouched)
+    before = stage_keys(out)
+    run(models=["pointpillars"], out=out, progress=False, config=TINY)
+    assert stage_keys(out) == before
+
+
+def test_bad_profile_and_model_names():
+    with pytest.raises(ValueError, match="unknown profile 'huge'"):
+        run(profile="huge")
+    with pytest.raises(ValueError, match="unknown model"):
+        run(models=["yolo"], profile="quick")
