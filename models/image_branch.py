@@ -23,6 +23,8 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from models.vfe import RowBatchNorm
+
 MIN_DEPTH = 0.1  # metres in front of the camera below which a point gets no image feature
 
 
@@ -179,10 +181,10 @@ class PointFusion(nn.Module):
         super().__init__()
         self.lateral = nn.ModuleList(nn.Conv2d(cfg.img_channels, cfg.mid_channels, 3, 1, 1) for _ in range(cfg.num_levels))
         self.img_transform = nn.Sequential(
-            nn.Linear(cfg.mid_channels * cfg.num_levels, cfg.out_channels), nn.BatchNorm1d(cfg.out_channels, eps=1e-3)
+            nn.Linear(cfg.mid_channels * cfg.num_levels, cfg.out_channels), RowBatchNorm(cfg.out_channels, eps=1e-3)
         )
         self.pts_transform = nn.Sequential(
-            nn.Linear(cfg.pts_channels, cfg.out_channels), nn.BatchNorm1d(cfg.out_channels, eps=1e-3)
+            nn.Linear(cfg.pts_channels, cfg.out_channels), RowBatchNorm(cfg.out_channels, eps=1e-3)
         )
         self.num_levels = cfg.num_levels
 

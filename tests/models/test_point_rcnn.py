@@ -1,12 +1,21 @@
 import math
 
 import numpy as np
-import onnxruntime as ort
 import pytest
 import torch
 
 from harness.types import Sample
-from models.point_rcnn import CONFIGS, PointRCNN, bin_channels, bin_loss, build, decode_bins, encode_bins
+from models.export import export_onnx, run_onnx
+from models.point_rcnn import (
+    CONFIGS,
+    PointRCNN,
+    bin_channels,
+    bin_loss,
+    build,
+    decode_bins,
+    encode_bins,
+    interpolate_3nn,
+)
 
 CFG = CONFIGS["tiny"]
 
@@ -51,6 +60,22 @@ def test_encode_bins_matches_numpy():
         ref_bins, ref_res = numpy_encode(boxes[i].double().tolist(), xyz[i].double().tolist(), CFG)
         assert bins[i].tolist() == ref_bins
         np.testing.assert_allclose(res[i].numpy(), ref_res, atol=2e-5)
+
+
+def test_interpolate_3nn_matches_numpy_with_coincident_points():
+    rng = np.random.default_rng(3)
+    known = rng.uniform(-5, 5, (20, 3)).astype(np.float32)
+    feats = rng.normal(size=(20, 4)).astype(np.float32)
+    unknown = np.concatenate([known[:5], rng.uniform(-5, 5, (40, 3))]).astype(np.float32)
+    got = interpolate_3nn(*(torch.from_numpy(a) for a in (unknown, known, feats))).numpy()
+    for i, u in enumerate(unknown.astype(np.float64)):
+        d = np.sqrt(((known - u) ** 2).sum(1))
+        nn3 = np.argsort(d, kind="stable")[:3]
+        w = 1.0 / np.maximum(d[nn3], 1e-8)
+        np.testing.assert_allclose(got[i], (feats[nn3] * (w / w.sum())[:, None]).sum(0), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(got[:5], feats[:5], atol=1e-5)  # a known point keeps its features
+    empty = interpolate_3nn(torch.from_numpy(unknown), torch.zeros(0, 3), torch.zeros(0, 4))
+    assert (empty == 0).all()
 
 
 def one_hot_prediction(bins, res, cfg):
@@ -143,16 +168,13 @@ def test_onnx_matches_torch(tmp_path):
     model.loss([tiny_scene(rng)])  # move the batch-norm statistics off their defaults
     model.eval()
     path = tmp_path / "point_rcnn.onnx"
-    n = torch.export.Dim("n", min=0)
-    torch.onnx.export(model, (torch.from_numpy(tiny_scene(rng).points),), str(path), dynamo=True, optimize=False,
-                      input_names=["points"], output_names=list(model.output_names), dynamic_shapes=({0: n},))
-    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    export_onnx(model, path, {"sotif.profile": "tiny"})
     clouds = [tiny_scene(rng).points, tiny_scene(rng, 1).points[::7],
               np.concatenate([rng.uniform([0, -20, -3], [80, 20, 2], (500, 3)), rng.uniform(0, 1, (500, 1))], 1),
               np.zeros((3, 4)), np.zeros((0, 4))]
     for cloud in clouds:
         cloud = cloud.astype(np.float32)
-        got = sess.run(None, {"points": cloud})
+        got = run_onnx(path, cloud)
         with torch.no_grad():
             ref = [t.numpy() for t in model(torch.from_numpy(cloud))]
         assert_same_rows(np.concatenate([got[0], got[1][:, None]], 1), np.concatenate([ref[0], ref[1][:, None]], 1))
