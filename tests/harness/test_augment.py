@@ -1,0 +1,45 @@
+import numpy as np
+
+from harness.augment import AugmentConfig, augment, flip_y, rotate_z, scale
+from harness.boxes import points_in_boxes
+from harness.dataset import synthetic_sample
+
+
+def _membership(sample):
+    grown = sample.gt_boxes.copy()
+    grown[:, 3:6] += 0.02
+    return points_in_boxes(sample.points, grown)
+
+
+def test_augment_keeps_points_inside_their_boxes():
+    s = synthetic_sample(np.random.default_rng(0))
+    before = _membership(s)
+    for seed in range(5):
+        a = augment(s, np.random.default_rng(seed), AugmentConfig(rotation=np.pi, scale=(0.8, 1.2)))
+        assert np.array_equal(_membership(a), before)
+        assert a.gt_boxes[:, 6].min() >= -np.pi and a.gt_boxes[:, 6].max() < np.pi
+
+
+def test_transforms_match_matrices():
+    rng = np.random.default_rng(1)
+    pts = rng.standard_normal((50, 4)).astype(np.float32)
+    boxes = np.array([[5.0, 2.0, -1.0, 4.0, 1.7, 1.5, 0.3]], np.float32)
+    p, b = rotate_z(pts, boxes, 0.5)
+    rot = np.array([[np.cos(0.5), -np.sin(0.5)], [np.sin(0.5), np.cos(0.5)]])
+    np.testing.assert_allclose(p[:, :2], pts[:, :2] @ rot.T, atol=1e-5)
+    np.testing.assert_allclose(b[0, 6], 0.8, atol=1e-6)
+    p, b = flip_y(pts, boxes)
+    assert np.array_equal(p[:, 1], -pts[:, 1]) and np.isclose(b[0, 6], -0.3)
+    p, b = scale(pts, boxes, 1.1)
+    np.testing.assert_allclose(b[0, :6], boxes[0, :6] * 1.1, rtol=1e-6)
+    np.testing.assert_array_equal(p[:, 3], pts[:, 3])
+
+
+def test_lidar2img_follows_the_points():
+    s = synthetic_sample(np.random.default_rng(2))
+    l2i = np.array([[700, -600, 0, 10], [0, 0, -700, 5], [1, 0, 0, 0.3], [0, 0, 0, 1]], np.float32)
+    s.lidar2img = l2i
+    a = augment(s, np.random.default_rng(3))
+    hom = lambda p: np.c_[p[:, :3], np.ones(len(p))]
+    before, after = hom(s.points) @ l2i.T, hom(a.points) @ a.lidar2img.T
+    np.testing.assert_allclose(after[:, :2] / after[:, 2:3], before[:, :2] / before[:, 2:3], rtol=1e-3, atol=1e-2)

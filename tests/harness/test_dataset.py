@@ -1,0 +1,34 @@
+import numpy as np
+import pytest
+
+from harness import kitti
+from harness.boxes import points_in_boxes
+from harness.dataset import KittiDataset, dataset_hash, synthetic_sample, write_synthetic_dataset
+
+
+def test_synthetic_sample_points_lie_on_cars():
+    s = synthetic_sample(np.random.default_rng(0), num_cars=4)
+    assert s.points.dtype == np.float32 and s.points.shape[1] == 4 and s.gt_boxes.shape == (4, 7)
+    grown = s.gt_boxes.copy()
+    grown[:, 3:6] += 0.01
+    inside = points_in_boxes(s.points, grown).any(1)
+    assert inside.sum() > 500 and np.allclose(s.points[~inside, 2], -1.73)
+
+
+def test_dataset_reads_samples_like_the_writer(tmp_path):
+    root = write_synthetic_dataset(tmp_path / "d", frames=3, seed=1, val=1)
+    ds = KittiDataset(root, "train")
+    assert len(ds) == 2 and len(KittiDataset(root, "val")) == 1
+    sample = ds[1]
+    ref = synthetic_sample(np.random.default_rng([1, 1]), frame_id="000001")
+    np.testing.assert_array_equal(sample.points, ref.points)
+    np.testing.assert_allclose(sample.gt_boxes, ref.gt_boxes, atol=1e-3)
+    assert list(sample.gt_names) == ["Car"] * 3 and sample.image is None
+    h = dataset_hash(root)
+    kitti.write_labels(kitti.frame_path(root, "label_2", "000000"), kitti.Labels.empty())
+    assert dataset_hash(root) != h
+
+
+def test_missing_folder_is_a_clear_error(tmp_path):
+    with pytest.raises(kitti.KittiError, match="not found"):
+        KittiDataset(tmp_path / "nowhere", "train")
