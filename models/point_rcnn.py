@@ -1,6 +1,6 @@
 """PointRCNN (Shi et al., CVPR 2019): point-based two-stage detector on raw points.
 
-    points (N, 4) --range filter, FPS to num_points--> P0 (n0, 3) + intensity
+    points (N, 4) --range filter, thinning to num_points--> P0 (n0, 3) + intensity
       --PointNet++ (MSG set abstraction x4, feature propagation x4)--> per-point features
       --seg head--> foreground logit per point   --bin head--> one box proposal per point
       --top-k by foreground score + BEV NMS--> rois (K, 7), roi_scores (K,)
@@ -40,8 +40,7 @@ from models.roi_head import (
 @dataclass(frozen=True)
 class PointRCNNConfig:
     pc_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
-    num_points: int = 2048  # FPS sample of the cloud that every later stage works on
-    thin_factor: int = 4  # in-range points are first thinned to thin_factor * num_points
+    num_points: int = 4096  # in-range points thinned to this count for every later stage
     sa_npoints: tuple[int, ...] = (512, 128, 32, 8)
     sa_radii: tuple[tuple[float, ...], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
     sa_nsamples: tuple[tuple[int, ...], ...] = ((16, 32), (16, 32), (16, 32), (16, 32))
@@ -257,26 +256,24 @@ class PointRCNN(Detector):
         self.roi_cfg = RoITargetConfig(per_frame=cfg.rois)
         self.rng = np.random.default_rng(cfg.seed)
 
-    def points_of_interest(self, points: Tensor) -> Tensor:
-        """(N, 4) -> (num_points, 4): the points inside the range, thinned, FPS-sampled.
+    def points_of_interest(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """(N, 4) -> (num_points, 4) the in-range points thinned to num_points, and a bool
+        scalar tensor: some point is in range.
 
-        The n in-range points are first thinned to thin_factor * num_points evenly spaced
-        indices (LiDAR order runs along rings, so this is a uniform thinning that bounds the
-        FPS cost; a sparse cloud repeats points). The result is padded with num_points copies
-        of its first point (a zero point when the cloud is empty): FPS starts at that point,
-        so the copies are drawn only once every distinct point is taken, and every later
-        shape is static.
+        Evenly spaced indices over the in-range points: LiDAR order runs along the rings, so
+        this is a uniform thinning, like the random sampling to a fixed count of OpenPCDet's
+        PointRCNN, but deterministic and with a static output shape. A sparser cloud repeats
+        points (repeats never win a later farthest point sampling step); an empty one gives
+        zero points.
         """
         lo = points.new_tensor(self.cfg.pc_range[:3])
         hi = points.new_tensor(self.cfg.pc_range[3:])
-        pts = points[((points[:, :3] >= lo) & (points[:, :3] < hi)).all(1)]  # (n, 4)
-        pts = torch.cat([pts, pts.new_zeros(1, 4)])  # (n + 1, 4): row n only read when n == 0
-        m = self.cfg.thin_factor * self.cfg.num_points
-        step = (pts.shape[0] - 1) / m
-        idx = torch.floor(torch.arange(m, device=pts.device, dtype=torch.float32) * step).long()
-        pts = pts[idx]  # (m, 4)
-        pts = torch.cat([pts, pts[:1].expand(self.cfg.num_points, 4)])  # (m + num_points, 4)
-        return pts[farthest_point_sample(pts[:, :3], self.cfg.num_points)]
+        inside = ((points[:, :3] >= lo) & (points[:, :3] < hi)).all(1)  # (N,)
+        pts = torch.cat([points[inside], points.new_zeros(1, 4)])  # (n + 1, 4): row n read only if n == 0
+        step = (pts.shape[0] - 1) / self.cfg.num_points
+        idx = torch.arange(self.cfg.num_points, device=pts.device, dtype=torch.float32) * step
+        # sum, not any(): ONNX ReduceMax over zero elements does not give False
+        return pts[torch.floor(idx).long()], inside.sum() > 0  # (num_points, 4), ()
 
     def stage_one(self, pts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """pts (n0, 4) -> features (n0, C), seg logit (n0,), box head output (n0, B)."""
@@ -305,9 +302,10 @@ class PointRCNN(Detector):
         return self.rcnn(pooled, empty | ~valid)
 
     def forward(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-        pts = self.points_of_interest(points)  # (n0, 4)
+        pts, nonempty = self.points_of_interest(points)  # (n0, 4), ()
         feats, seg, box = self.stage_one(pts)
         rois, roi_scores, valid = self.propose(pts, seg, box)  # (R, 7), (R,), (R,)
+        valid = valid & nonempty  # no point in range: no RoI (the zero points are padding)
         logit, deltas = self.refine(pts, feats, seg, rois, valid)
         rcnn_boxes = decode_canonical(deltas, rois)  # (R, 7)
         scores = torch.sigmoid(logit) * valid.to(logit.dtype)  # (R,)
@@ -331,7 +329,7 @@ class PointRCNN(Detector):
 
     def frame_loss(self, sample: Sample) -> dict[str, Tensor]:
         device = next(self.parameters()).device
-        pts = self.points_of_interest(torch.as_tensor(sample.points, device=device))
+        pts, _ = self.points_of_interest(torch.as_tensor(sample.points, device=device))
         cars = torch.as_tensor(sample.boxes_of("Car"), device=device)
         others = torch.as_tensor(sample.gt_boxes[sample.gt_names != "Car"].astype(np.float32), device=device)
         feats, seg, box = self.stage_one(pts)

@@ -180,3 +180,4 @@ def test_onnx_matches_torch(tmp_path):
         assert_same_rows(np.concatenate([got[0], got[1][:, None]], 1), np.concatenate([ref[0], ref[1][:, None]], 1))
         assert_same_rows(np.concatenate([got[2], got[3][:, None], got[4]], 1),
                          np.concatenate([ref[2], ref[3][:, None], ref[4]], 1))
+        assert (len(ref[2]) > 0) == (len(cloud) > 0)  # RoIs from any cloud with points in range
