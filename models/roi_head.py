@@ -23,7 +23,7 @@ from torch import Tensor, nn
 
 from harness.boxes import iou_3d
 from models.anchor_head import AnchorHead
-from models.nms import select_detections
+from models.nms import nms_rotated
 from models.pointnet2 import PointBatchNorm
 
 
@@ -194,11 +194,47 @@ class ProposalConfig:
     rois: int = 32  # proposals kept (stage-2 inputs)
 
 
+_SCORE_LEVELS = 2 ** 16  # score quantisation of the ranking key: coarser than float noise
+_MAX_INDEX = 2 ** 22  # more candidates than this would overflow the int64 key's index part
+
+
+def ranked_topk(scores: Tensor, k: int) -> Tensor:
+    """(min(k, A),) indices of scores (A,) in [0, 1] by descending score, ties by ascending index.
+
+    torch's CPU sort / topk and onnxruntime's TopK break ties differently, and the two runtimes'
+    scores of identical inputs (empty map cells) differ by float noise (~1e-7), so the ranking
+    key is the integer ``floor(score * 2^16) * 2^22 - index``: scores within 1.5e-5 rank by
+    index, and every candidate's key is distinct.
+    """
+    a = scores.shape[0]
+    torch._check(a < _MAX_INDEX)
+    level = torch.floor(scores.clamp(0.0, 1.0) * _SCORE_LEVELS).long()  # (A,)
+    key = level * _MAX_INDEX - torch.arange(a, device=scores.device)
+    return torch.topk(key, torch.sym_min(k, a)).indices
+
+
+def select_ranked(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: int,
+                  nms_iou: float, max_out: int) -> tuple[Tensor, Tensor]:
+    """Top ``nms_pre`` by score -> score threshold -> rotated NMS -> at most ``max_out``.
+
+    Equal scores are ranked by index (``ranked_topk``) and the NMS runs on that rank, so torch
+    and onnxruntime keep the same boxes even where many scores tie exactly (empty map regions).
+    boxes (A, 7), scores (A,) in [0, 1] -> (M, 7), (M,).
+    """
+    order = ranked_topk(scores, nms_pre)  # (K,)
+    boxes, scores = boxes[order], scores[order]
+    good = scores > score_thresh
+    boxes, scores = boxes[good], scores[good]
+    rank = -torch.arange(scores.shape[0], dtype=scores.dtype, device=scores.device)  # (K',) no ties
+    keep = nms_rotated(boxes, rank, nms_iou)[:max_out]
+    return boxes[keep], scores[keep]
+
+
 def propose(head: AnchorHead, feats: Tensor, cfg: ProposalConfig) -> tuple[Tensor, Tensor]:
     """Stage-1 proposals from an anchor head: feats (1, C, H, W) -> rois (K, 7), scores (K,)."""
     cls, box, dirs = head(feats)
     boxes = head.decode(box, dirs)  # (A, 7)
-    return select_detections(boxes, torch.sigmoid(cls), -1.0, cfg.nms_pre, cfg.nms_iou, cfg.rois)
+    return select_ranked(boxes, torch.sigmoid(cls), -1.0, cfg.nms_pre, cfg.nms_iou, cfg.rois)
 
 
 @dataclass(frozen=True)
@@ -213,6 +249,6 @@ def finalize(rois: Tensor, logit: Tensor, deltas: Tensor,
              cfg: OutputConfig) -> tuple[Tensor, Tensor, Tensor]:
     """rois (K, 7), logit (K,), deltas (K, 7) -> boxes (M, 7), scores (M,), rcnn_boxes (K, 7)."""
     rcnn_boxes = decode_canonical(deltas, rois)  # (K, 7)
-    boxes, scores = select_detections(rcnn_boxes, torch.sigmoid(logit), cfg.score_thresh,
-                                      cfg.nms_pre, cfg.nms_iou, cfg.max_out)
+    boxes, scores = select_ranked(rcnn_boxes, torch.sigmoid(logit), cfg.score_thresh,
+                                  cfg.nms_pre, cfg.nms_iou, cfg.max_out)
     return boxes, scores, rcnn_boxes

@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from harness.boxes import corners_3d, iou_3d, wrap_angle
+from harness.boxes import corners_3d, iou_3d, iou_bev, wrap_angle
 from models.roi_head import (RefineHead, RoITargetConfig, box_corners, corner_loss,
-                             decode_canonical, encode_canonical, iou_score_target, refine_loss,
-                             sample_rois)
+                             decode_canonical, encode_canonical, iou_score_target, ranked_topk,
+                             refine_loss, sample_rois, select_ranked)
 
 
 def random_boxes(rng, k, spread=20.0):
@@ -117,3 +117,31 @@ def test_refine_loss_falls_when_training_the_head():
     head.eval()
     logit, deltas = head(feats[:1])
     assert logit.shape == (1,) and deltas.shape == (1, 7)
+
+
+def test_ranked_topk_breaks_ties_by_index():
+    rng = np.random.default_rng(7)
+    scores = rng.integers(0, 6, 3000) / 7.0  # many exact ties
+    got = ranked_topk(torch.from_numpy(scores).float(), 500).numpy()
+    want = sorted(range(3000), key=lambda i: (-np.float32(scores[i]), i))[:500]
+    np.testing.assert_array_equal(got, want)
+    assert len(ranked_topk(torch.zeros(0), 5)) == 0
+
+
+def test_select_ranked_is_greedy_nms_in_rank_order():
+    rng = np.random.default_rng(8)
+    boxes = random_boxes(rng, 120, 12.0)
+    boxes[:, 3:6] *= 1.5  # more overlaps
+    scores = (rng.integers(0, 20, 120) / 20.0).astype(np.float32)  # ties
+    got_boxes, got_scores = select_ranked(torch.from_numpy(boxes), torch.from_numpy(scores),
+                                          0.1, 100, 0.2, 30)
+    order = sorted(range(120), key=lambda i: (-scores[i], i))[:100]
+    order = [i for i in order if scores[i] > 0.1]
+    overlaps = iou_bev(boxes, boxes)
+    kept: list[int] = []
+    for i in order:  # greedy NMS, reference
+        if all(overlaps[i, j] <= 0.2 for j in kept):
+            kept.append(i)
+    kept = kept[:30]
+    np.testing.assert_allclose(got_boxes.numpy(), boxes[kept], atol=1e-6)
+    np.testing.assert_array_equal(got_scores.numpy(), scores[kept])

@@ -1,0 +1,271 @@
+"""Part-A2 (Shi et al., TPAMI 2020), anchor-based variant as in OpenPCDet.
+
+    points (N, 4) --hard voxelization, mean VFE--> sparse voxels (V, 4)
+      --sparse 3D UNet encoder (SECOND backbone: subm + 3 strided convs)--> levels 0..3
+         |--z-collapse--> BEV (1, C, H, W) --2D backbone--> anchor RPN --NMS--> rois, roi_scores
+         '--UNet decoder (inverse convs + lateral concat) back to level 0--> voxel features
+              --seg head--> foreground score     --part head--> intra-object part location
+      --RoI-aware pooling (max of features, avg of part + seg) into g x g x g cells per RoI
+      --3D conv on the pooled grids--> flatten --refine head--> IoU-guided score, residuals
+      --decode--> rcnn_boxes (K, 7) --score threshold + BEV NMS--> boxes, scores
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from harness.types import Sample
+from models.anchor_head import AnchorHead, HeadConfig
+from models.backbone2d import BEVBackbone
+from models.base import Detector
+from models.losses import sigmoid_focal_loss
+from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITargetConfig,
+                             finalize, propose, refine_loss, sample_rois)
+from models.roi_pool import roiaware_pool, to_roi_frame
+from models.single_stage import frame_targets
+from models.sparse import SparseInverseConv3d, SparseTensor, SubMConv3d, conv_block, height_compress
+from models.vfe import MeanVFE
+from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig, output_shape
+from models.voxelize import Grid, hard_voxelize
+
+
+@dataclass(frozen=True)
+class PartA2Config:
+    pc_range: tuple[float, ...] = (0.0, -19.2, -3.0, 76.8, 19.2, 1.8)  # x0 y0 z0 x1 y1 z1, m
+    voxel_size: tuple[float, float, float] = (0.4, 0.4, 0.4)  # m
+    max_points: int = 5  # per voxel
+    max_voxels: int = 40000
+    backbone3d: VoxelBackboneConfig = VoxelBackboneConfig(
+        16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 1), StageSpec(64, (2, 2, 2), (1, 1, 1), 1),
+             StageSpec(64, (2, 1, 1), (0, 1, 1), 1)), 64, (1, 0, 0))
+    bev_layers: tuple[int, ...] = (2, 2)
+    bev_strides: tuple[int, ...] = (1, 2)
+    bev_filters: tuple[int, ...] = (64, 128)
+    bev_up_strides: tuple[float, ...] = (2, 4)
+    bev_up_filters: tuple[int, ...] = (64, 64)
+    head: HeadConfig = HeadConfig()
+    proposals_train: ProposalConfig = ProposalConfig(nms_pre=256, nms_iou=0.7, rois=64)
+    proposals_test: ProposalConfig = ProposalConfig(nms_pre=256, nms_iou=0.7, rois=32)
+    part_margin: float = 0.2  # m: voxels this close outside a box are ignored by the seg loss
+    roi_grid: int = 6  # pooled cells per RoI axis
+    roi_conv: int = 32  # channels of the convs on the pooled grid
+    fc: tuple[int, ...] = (128, 128)
+    dropout: float = 0.3
+    targets: RoITargetConfig = RoITargetConfig(per_frame=32)
+    output: OutputConfig = OutputConfig()
+    weight_seg: float = 1.0
+    weight_part: float = 1.0
+    weight_rcnn: float = 1.0
+    seed: int = 0  # RoI sampling draws
+
+    @property
+    def grid(self) -> Grid:
+        return Grid(self.pc_range, self.voxel_size)
+
+
+CONFIGS = {
+    "tiny": PartA2Config(
+        pc_range=(0.0, -12.8, -3.0, 25.6, 12.8, 1.8), voxel_size=(0.8, 0.8, 0.4),
+        max_voxels=4000,
+        backbone3d=VoxelBackboneConfig(8, (StageSpec(8, (2, 2, 2), (1, 1, 1), 0),
+                                           StageSpec(16, (2, 2, 2), (1, 1, 1), 0),
+                                           StageSpec(16, (2, 1, 1), (0, 1, 1), 0)), 16, (1, 0, 0)),
+        bev_layers=(1,), bev_strides=(1,), bev_filters=(16,), bev_up_strides=(2,),
+        bev_up_filters=(16,), head=HeadConfig(anchor_z=-1.0, nms_pre=64), proposals_train=ProposalConfig(64, 0.7, 16),
+        proposals_test=ProposalConfig(64, 0.7, 8), roi_grid=4, roi_conv=8, fc=(32,),
+        targets=RoITargetConfig(per_frame=16)),
+    "compact": PartA2Config(),
+    "kitti": PartA2Config(
+        pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), voxel_size=(0.05, 0.05, 0.1),
+        max_voxels=16000,
+        backbone3d=VoxelBackboneConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2),
+                                            StageSpec(64, (2, 2, 2), (1, 1, 1), 2),
+                                            StageSpec(64, (2, 2, 2), (0, 1, 1), 2)), 128, (0, 0, 0)),
+        bev_layers=(5, 5), bev_up_strides=(1, 2),
+        bev_filters=(128, 256), bev_up_filters=(256, 256),
+        head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
+        proposals_train=ProposalConfig(9000, 0.8, 512), proposals_test=ProposalConfig(1024, 0.7, 100),
+        roi_grid=14, roi_conv=64, fc=(256, 256), targets=RoITargetConfig(per_frame=128, gt_jitter=0)),
+}
+
+
+def voxel_centres(x: SparseTensor, grid: Grid) -> Tensor:
+    """(V, 3) x, y, z centres in metres of full-resolution voxels."""
+    zyx = x.coords.to(torch.float32)  # (V, 3) indices
+    return (torch.flip(zyx, dims=[1]) + 0.5) * grid.size() + grid.lower()
+
+
+class SparseUNet(nn.Module):
+    """Encoder: the SECOND sparse backbone (its levels and z-collapsed output); decoder: per
+    level, coarse to fine, an inverse conv onto the finer voxels, lateral concatenation with the
+    encoder features there and a submanifold conv.
+
+    forward(x (V, 4) at level 0) -> (decoded level-0 SparseTensor (V, C0), BEV (1, C*D, H, W)).
+    """
+
+    def __init__(self, c_in: int, cfg: VoxelBackboneConfig):
+        super().__init__()
+        self.encoder = VoxelBackbone(c_in, cfg)
+        channels = [cfg.stem_channels] + [s.channels for s in cfg.stages]
+        self.up = nn.ModuleList(SparseInverseConv3d(channels[i + 1], channels[i], 3, s.stride, s.padding)
+                                for i, s in enumerate(cfg.stages))
+        self.merge = nn.ModuleList(conv_block(SubMConv3d(2 * c, c), c) for c in channels[:-1])
+
+    def forward(self, x: SparseTensor) -> tuple[SparseTensor, Tensor]:
+        out, levels = self.encoder(x)
+        y = levels[-1]
+        for i in reversed(range(len(self.up))):
+            up = self.up[i](y, levels[i])  # coarse -> the voxels of level i
+            cat = torch.cat([levels[i].features, torch.relu(up.features)], 1)
+            y = self.merge[i](levels[i].with_features(cat))
+        return y, height_compress(out)
+
+
+def part_targets(xyz: Tensor, gt: Tensor, margin: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Foreground and intra-object part location of every voxel centre.
+
+    xyz (V, 3), gt (G, 7). Returns fg (V,) float 0/1 (inside a GT box), ignore (V,) bool
+    (outside every box but inside one enlarged by ``margin`` metres) and part (V, 3): the
+    position inside the containing box as fractions of (l, w, h) in [0, 1] (0 for background).
+    """
+    if gt.shape[0] == 0:
+        zeros = xyz.new_zeros(xyz.shape[0])
+        return zeros, zeros.bool(), xyz.new_zeros(xyz.shape[0], 3)
+    local = to_roi_frame(xyz, gt)  # (G, V, 3)
+    half = gt[:, None, 3:6] / 2  # (G, 1, 3)
+    inside = (local.abs() < half).all(-1)  # (G, V)
+    near = (local.abs() < half + margin).all(-1)  # (G, V)
+    fg = inside.any(0)  # (V,)
+    owner = inside.float().argmax(0)  # (V,) first containing box
+    frac = local / gt[:, None, 3:6] + 0.5  # (G, V, 3)
+    part = frac[owner, torch.arange(xyz.shape[0])] * fg[:, None]  # (V, 3)
+    return fg.float(), near.any(0) & ~fg, part.clamp(0.0, 1.0)
+
+
+class GridBatchNorm(nn.BatchNorm3d):
+    """BatchNorm3d whose inference form is the affine map (exports for a data-dependent K)."""
+
+    def forward(self, x: Tensor) -> Tensor:
+        if self.training:
+            return super().forward(x)
+        scale = self.weight / torch.sqrt(self.running_var + self.eps)  # (C,)
+        shift = self.bias - self.running_mean * scale
+        return x * scale[:, None, None, None] + shift[:, None, None, None]
+
+
+def _conv3d(c_in: int, c_out: int, stride: int) -> nn.Sequential:
+    return nn.Sequential(nn.Conv3d(c_in, c_out, 3, stride=stride, padding=1, bias=False),
+                         GridBatchNorm(c_out), nn.ReLU())
+
+
+class PartAggregationHead(nn.Module):
+    """RoI-aware pooling -> 3D conv on the pooled grids -> refinement.
+
+    Part branch: avg-pooled (part location, segmentation score); feature branch: max-pooled
+    decoder features. Each passes a 3D conv; they are concatenated, convolved with stride 2,
+    flattened and fed to the IoU-guided refinement head.
+    forward(rois (K, 7), xyz (V, 3), feats (V, C), seg (V,), part (V, 3)) -> logit (K,), deltas (K, 7).
+    """
+
+    def __init__(self, cfg: PartA2Config):
+        super().__init__()
+        g, c = cfg.roi_grid, cfg.roi_conv
+        self.grid = (g, g, g)
+        self.part_branch = _conv3d(4, c, stride=1)
+        self.feat_branch = _conv3d(cfg.backbone3d.stem_channels, c, stride=1)
+        self.merge = _conv3d(2 * c, 2 * c, stride=2)
+        side = (g - 1) // 2 + 1
+        self.refine = RefineHead(2 * c * side ** 3, cfg.fc, cfg.dropout)
+
+    def forward(self, rois: Tensor, xyz: Tensor, feats: Tensor, seg: Tensor,
+                part: Tensor) -> tuple[Tensor, Tensor]:
+        parts = torch.cat([part, seg[:, None]], 1)  # (V, 4)
+        pooled_feat, pooled_part = roiaware_pool(rois, xyz, feats, parts, self.grid)  # (K, g, g, g, C)
+        x_part = self.part_branch(pooled_part.permute(0, 4, 1, 2, 3))  # (K, c, g, g, g)
+        x_feat = self.feat_branch(pooled_feat.permute(0, 4, 1, 2, 3))  # (K, c, g, g, g)
+        merged = self.merge(torch.cat([x_part, x_feat], 1))  # (K, 2c, g', g', g')
+        return self.refine(merged.flatten(1))
+
+
+class PartA2(Detector):
+    architecture = "parta2"
+    two_stage = True
+
+    def __init__(self, cfg: PartA2Config):
+        super().__init__()
+        self.cfg = cfg
+        self.grid = cfg.grid
+        self.vfe = MeanVFE()
+        self.unet = SparseUNet(MeanVFE.out_channels, cfg.backbone3d)
+        d, h, w = output_shape(self.grid.shape, cfg.backbone3d)
+        self.backbone2d = BEVBackbone(cfg.backbone3d.out_channels * d, cfg.bev_layers, cfg.bev_strides,
+                                      cfg.bev_filters, cfg.bev_up_strides, cfg.bev_up_filters)
+        scale = cfg.bev_up_strides[0] / cfg.bev_strides[0]  # BEV output cells per input cell
+        feat_hw = (round(h * scale), round(w * scale))
+        self.rpn = AnchorHead(self.backbone2d.out_channels, feat_hw, cfg.pc_range, cfg.head)
+        c1 = cfg.backbone3d.stem_channels
+        self.seg_head = nn.Sequential(nn.Linear(c1, c1), nn.ReLU(), nn.Linear(c1, 1))
+        self.part_head = nn.Sequential(nn.Linear(c1, c1), nn.ReLU(), nn.Linear(c1, 3))
+        nn.init.constant_(self.seg_head[-1].bias, -math.log((1 - 0.01) / 0.01))
+        self.rcnn = PartAggregationHead(cfg)
+        self._rng = np.random.default_rng(cfg.seed)
+
+    def stage1(self, points: Tensor):
+        """points (N, 4) -> voxel centres (V, 3), voxel features (V, C1), seg logit (V,),
+        part logits (V, 3), BEV features (1, C, H, W)."""
+        voxels = hard_voxelize(points, self.grid, self.cfg.max_points, self.cfg.max_voxels)
+        x = SparseTensor(self.vfe(voxels), voxels.coords, voxels.shape)  # (V, 4)
+        fine, bev = self.unet(x)  # (V, C1), (1, C*D, H', W')
+        xyz = voxel_centres(fine, self.grid)  # (V, 3) metres
+        seg = self.seg_head(fine.features).squeeze(1)  # (V,)
+        part = self.part_head(fine.features)  # (V, 3)
+        return xyz, fine.features, seg, part, self.backbone2d(bev)
+
+    def forward(self, points: Tensor):
+        """points (N, 4) -> boxes (M, 7), scores (M,), rois (K, 7), roi_scores (K,), rcnn_boxes (K, 7)."""
+        xyz, feats, seg, part, bev = self.stage1(points)
+        rois, roi_scores = propose(self.rpn, bev, self.cfg.proposals_test)
+        logit, deltas = self.rcnn(rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
+        boxes, scores, rcnn_boxes = finalize(rois, logit, deltas, self.cfg.output)
+        return boxes, scores, rois, roi_scores, rcnn_boxes
+
+    def frame_loss(self, sample: Sample, device) -> dict[str, Tensor]:
+        points, gt, ignore = frame_targets(sample, device)
+        xyz, feats, seg, part, bev = self.stage1(points)
+        losses = dict(self.rpn.loss(bev, gt, ignore))
+        fg, ignored, part_t = part_targets(xyz, gt, self.cfg.part_margin)
+        weights = (~ignored).to(seg.dtype)
+        num_fg = fg.sum().clamp(min=1.0)
+        losses["seg"] = sigmoid_focal_loss(seg, fg, weights) / num_fg
+        on = fg > 0
+        losses["part"] = (F.binary_cross_entropy_with_logits(part[on], part_t[on])
+                          if bool(on.any()) else part.sum() * 0.0)
+        with torch.no_grad():
+            rois, _ = propose(self.rpn, bev, self.cfg.proposals_train)
+        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self._rng)
+        targets.rois, targets.iou, targets.gt = (t.to(device) for t in (targets.rois, targets.iou, targets.gt))
+        logit, deltas = self.rcnn(targets.rois, xyz, feats, torch.sigmoid(seg).detach(),
+                                  torch.sigmoid(part).detach())
+        losses.update(refine_loss(logit, deltas, targets, self.cfg.targets))
+        c = self.cfg
+        losses["loss"] = (losses["loss"] + c.weight_seg * losses["seg"] + c.weight_part * losses["part"]
+                          + c.weight_rcnn * (losses["rcnn_score"] + losses["rcnn_reg"] + losses["rcnn_corner"]))
+        return losses
+
+    def loss(self, samples: list[Sample]) -> dict[str, Tensor]:
+        """Mean over frames (frames run one by one: no batch axis)."""
+        device = next(self.parameters()).device
+        totals: dict[str, Tensor] = {}
+        for sample in samples:
+            for k, v in self.frame_loss(sample, device).items():
+                totals[k] = totals.get(k, 0.0) + v / len(samples)
+        return totals
+
+
+def build(profile: str = "compact") -> PartA2:
+    return PartA2(CONFIGS[profile])

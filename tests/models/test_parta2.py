@@ -1,0 +1,136 @@
+"""Part-A2 tiny profile: part targets against a brute-force reference, output shapes, loss falls,
+onnxruntime == torch on random, tiny and empty clouds."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from harness.boxes import points_in_boxes
+from harness.types import Sample
+from models.export import export_onnx, run_onnx
+from models.parta2 import CONFIGS, PartA2, build, part_targets, voxel_centres
+from models.sparse import SparseTensor
+
+CARS = np.array([[10.0, 2.0, -0.95, 4.5, 1.8, 1.6, 0.1], [18.0, -4.0, -0.95, 4.2, 1.7, 1.5, -0.2]],
+                np.float32)
+
+
+def scene(rng: np.random.Generator, ground: int = 3000, per_car: int = 300) -> Sample:
+    """A ground plane 1.73 m below the sensor and points filling two car boxes."""
+    floor = np.c_[rng.uniform(0, 25, ground), rng.uniform(-12, 12, ground),
+                  rng.normal(-1.73, 0.02, ground), rng.uniform(0, 1, ground)]
+    parts = [floor]
+    for b in CARS:
+        local = rng.uniform(-0.5, 0.5, (per_car, 3)) * b[3:6]
+        c, s = np.cos(b[6]), np.sin(b[6])
+        xy = local[:, :2] @ np.array([[c, s], [-s, c]]) + b[:2]
+        parts.append(np.c_[xy, local[:, 2] + b[2], rng.uniform(0, 1, per_car)])
+    points = np.concatenate(parts).astype(np.float32)
+    return Sample("000000", points, CARS.copy(), np.array(["Car", "Car"]))
+
+
+def random_cloud(rng: np.random.Generator, pc_range, n: int) -> np.ndarray:
+    """(n, 4) float32 points uniform over the range (a margin outside it included)."""
+    lo, hi = np.array(pc_range[:3]) - 1.0, np.array(pc_range[3:]) + 1.0
+    return np.c_[rng.uniform(lo, hi, (n, 3)), rng.uniform(0, 1, n)].astype(np.float32)
+
+
+def train_steps(model: torch.nn.Module, sample: Sample, steps: int) -> tuple[float, float]:
+    """Adam steps on one frame; mean total loss of the first two and of the last two steps."""
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    totals = []
+    for _ in range(steps):
+        loss = model.loss([sample])["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        totals.append(float(loss.detach()))
+    return float(np.mean(totals[:2])), float(np.mean(totals[-2:]))
+
+
+def test_part_targets_match_reference():
+    rng = np.random.default_rng(0)
+    gt = np.array([[2.0, 1.0, 0.0, 4.0, 2.0, 1.5, 0.4], [-3.0, -2.0, 0.2, 3.0, 1.5, 1.2, -1.2]],
+                  np.float32)
+    xyz = rng.uniform(-6, 6, (3000, 3)).astype(np.float32)
+    xyz[:, 2] = rng.uniform(-1.5, 1.5, 3000)
+    fg, ignore, part = part_targets(torch.from_numpy(xyz), torch.from_numpy(gt), 0.3)
+    inside = points_in_boxes(xyz, gt)  # (V, G)
+    grown = gt.copy()
+    grown[:, 3:6] += 0.6
+    near = points_in_boxes(xyz, grown)
+    np.testing.assert_array_equal(fg.numpy() > 0, inside.any(1))
+    np.testing.assert_array_equal(ignore.numpy(), near.any(1) & ~inside.any(1))
+    assert 50 < inside.sum() and ignore.numpy().sum() > 10
+    for v in np.flatnonzero(inside.any(1)):
+        b = gt[np.argmax(inside[v])].astype(np.float64)
+        d = xyz[v] - b[:3]
+        c, s = np.cos(b[6]), np.sin(b[6])
+        local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
+        np.testing.assert_allclose(part[v].numpy(), local / b[3:6] + 0.5, atol=1e-5)
+    assert not part.numpy()[~inside.any(1)].any()
+
+
+def test_voxel_centres_match_reference():
+    cfg = CONFIGS["tiny"]
+    coords = torch.tensor([[0, 0, 0], [3, 5, 7]])
+    x = SparseTensor(torch.zeros(2, 1), coords, cfg.grid.shape)
+    got = voxel_centres(x, cfg.grid).numpy()
+    x0, y0, z0 = cfg.pc_range[:3]
+    dx, dy, dz = cfg.voxel_size
+    want = [[x0 + dx / 2, y0 + dy / 2, z0 + dz / 2], [x0 + 7.5 * dx, y0 + 5.5 * dy, z0 + 3.5 * dz]]
+    np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_outputs_and_loss_falls():
+    torch.manual_seed(0)
+    model = build("tiny")
+    assert isinstance(model, PartA2) and model.two_stage
+    sample = scene(np.random.default_rng(1))
+    first, last = train_steps(model, sample, steps=8)
+    assert last < 0.8 * first
+    model.eval()
+    with torch.no_grad():
+        boxes, scores, rois, roi_scores, rcnn_boxes = model(torch.from_numpy(sample.points))
+    k = CONFIGS["tiny"].proposals_test.rois
+    assert rois.shape == (k, 7) and roi_scores.shape == (k,) and rcnn_boxes.shape == (k, 7)
+    assert boxes.shape[1] == 7 and boxes.shape[0] == scores.shape[0] <= k
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    """A random tiny model whose RPN and refinement outputs get large random weights, so that
+    scores spread over (0, 1) instead of sitting at the initial prior (near-ties)."""
+    torch.manual_seed(0)
+    model = build("tiny").eval()
+    gen = torch.Generator().manual_seed(1)
+    layers = ((model.rpn.conv_cls, 1.0), (model.rpn.conv_box, 0.1), (model.rcnn.refine.cls, 1.0),
+              (model.rcnn.refine.reg, 0.1))
+    with torch.no_grad():
+        for layer, std in layers:
+            layer.weight.copy_(torch.randn(layer.weight.shape, generator=gen) * std)
+            layer.bias.copy_(torch.randn(layer.bias.shape, generator=gen) * std)
+    path = tmp_path_factory.mktemp("parta2") / "parta2.onnx"
+    hist = export_onnx(model, path, {"sotif.profile": "tiny"})
+    return model, path, hist
+
+
+def test_export_keeps_every_step_in_the_graph(exported):
+    _, _, hist = exported
+    for op in ("Loop", "TopK", "ScatterElements", "Conv", "Gather"):
+        assert op in hist, op
+
+
+@pytest.mark.parametrize("n", [3000, 7, 0])
+def test_onnx_matches_torch(exported, n):
+    model, path, _ = exported
+    points = random_cloud(np.random.default_rng(n), CONFIGS["tiny"].pc_range, n)
+    got = run_onnx(path, points)
+    with torch.no_grad():
+        want = model(torch.from_numpy(points))
+    assert len(got) == 5
+    for g, w in zip(got, want):
+        assert g.shape == tuple(w.shape)
+        np.testing.assert_allclose(g, w.numpy(), rtol=1e-4, atol=1e-4)
