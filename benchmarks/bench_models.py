@@ -70,7 +70,7 @@ def bench_model(name: str, args, train_root: Path, eval_root: Path, split: str) 
     meta = torch.load(ckpt, map_location="cpu", weights_only=False)
     onnx_path = export_checkpoint(ckpt, args.out / "models" / f"{name}.onnx", expected_model=name)
     pred = predict(onnx_path, eval_root, args.out / "predictions" / name, split=split, progress=False, threads=1)
-    res = evaluate(eval_root, args.out / "predictions" / name, split=split)
+    res = evaluate(eval_root, args.out / "predictions" / name, split=eval_root / "ImageSets" / f"{split}.txt")
     model, _ = load_checkpoint(ckpt)
     eager = eager_latency(model, eval_root, split, args.latency_frames)
     row = {"model": name, "train_s": float(meta.get("train_seconds", time.perf_counter() - t0)),
@@ -93,7 +93,7 @@ def sotif_ap(name: str, onnx_path: Path, args) -> dict:
     root = simulate(args.out / "data" / "sotif_clear", "sotif", None, 0, ["ClearNoon"])
     split = all_frames_split(root)
     predict(onnx_path, root, args.out / "predictions_sotif" / name, split=split, progress=False, threads=1)
-    res = evaluate(root, args.out / "predictions_sotif" / name, split=split)
+    res = evaluate(root, args.out / "predictions_sotif" / name, split=root / "ImageSets" / f"{split}.txt")
     dist = res["distance"]["3d"]["0.7"]
     return {"sotif_ap3d_all": res["headline"]["3d"]["0.7"], "sotif_apbev_all": res["headline"]["bev"]["0.7"],
             "sotif_ap3d_30_50": dist.get("30-50"), "sotif_ap3d_50_80": dist.get("50-80")}
