@@ -7,6 +7,8 @@
 - ``RefineHead``: shared MLP -> IoU-guided confidence logit and box residuals.
 - ``refine_loss``: IoU-guided scoring (binary cross-entropy against a ramp of the RoI IoU),
   smooth-L1 residuals and the corner loss on foreground RoIs.
+- ``ranked_topk`` / ``select_ranked``: top-k, score threshold and rotated NMS with ties ranked
+  by index, so torch and onnxruntime keep the same boxes.
 - ``propose``: anchor-RPN proposals (decode + rotated NMS in the graph) that enter stage 2.
 - ``finalize``: refined boxes of every RoI, then score threshold + NMS for the final output.
 """
