@@ -53,6 +53,8 @@ class Voxels:
     point2voxel: Tensor  # (P,) int64 voxel index of each kept point, in [0, V)
     coords: Tensor  # (V, 3) int64 voxel indices (z, y, x)
     shape: tuple[int, int, int]  # (D, H, W) grid shape
+    slot: Tensor | None = None  # (P,) int64 rank of the point in its voxel (hard voxelization)
+    max_points: int | None = None  # slots per voxel (hard voxelization)
 
     @property
     def num_voxels(self) -> int:
@@ -124,5 +126,7 @@ def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) 
     new_id = torch.full((v,), -1, dtype=torch.long)
     new_id = new_id.index_put((order,), torch.arange(order.shape[0], dtype=torch.long))  # (V,)
     point_voxel = new_id[inverse]  # (P,) -1 for points of dropped voxels
-    keep = (_slot_in_voxel(inverse, v) < max_points) & (point_voxel >= 0)
-    return Voxels(pts[keep], point_voxel[keep], _coords_of(uniq[order], grid.shape), grid.shape)
+    slot = _slot_in_voxel(inverse, v)  # (P,)
+    keep = (slot < max_points) & (point_voxel >= 0)
+    return Voxels(pts[keep], point_voxel[keep], _coords_of(uniq[order], grid.shape), grid.shape,
+                  slot[keep], max_points)

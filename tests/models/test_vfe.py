@@ -40,3 +40,17 @@ def test_mean_vfe_and_pillar_decoration():
     per_point = torch.relu(pillar.norm(pillar.linear(torch.from_numpy(dec)))).detach().numpy()
     for i in range(vox.num_voxels):
         np.testing.assert_allclose(out[i], per_point[(vox.point2voxel == i).numpy()].max(0), rtol=1e-6)
+
+
+def test_voxel_max_uses_slots_of_hard_voxels():
+    from models.vfe import voxel_max_nonneg
+    from models.voxelize import hard_voxelize
+
+    rng = np.random.default_rng(2)
+    pts = torch.from_numpy((rng.random((3000, 4)) * [8, 8, 4, 1] + [0, -4, -3, 0]).astype(np.float32))
+    for cap in (1, 3, 40):
+        vox = hard_voxelize(pts, GRID, cap, 10000)
+        vals = torch.from_numpy(rng.random((vox.points.shape[0], 5)).astype(np.float32))
+        got = voxel_max_nonneg(vals, vox).numpy()
+        for i in range(vox.num_voxels):
+            np.testing.assert_array_equal(got[i], vals[(vox.point2voxel == i).numpy()].numpy().max(0))
