@@ -57,7 +57,10 @@ def load_folder(folder: Path, ids, with_score: bool) -> list[Labels]:
         p = Path(folder) / f"{fid}.txt"
         if not p.is_file():
             raise KittiError(p, "file not found (every frame of the split needs one, empty if nothing was found)")
-        out.append(read_labels(p, with_score=with_score))
+        labels = read_labels(p, with_score=None)
+        if with_score and labels.score is None:  # as the reference: a result without scores scores 0
+            labels.score = np.zeros(len(labels))
+        out.append(labels)
     return out
 
 

@@ -53,6 +53,10 @@ def test_cli_evaluate_writes_json_and_exit_codes(tmp_path, dataset, capsys):
     assert set(res["kitti"]["3d"]) == {"0.7", "0.5", "official_0.5"}
     assert set(res["kitti"]["3d"]["0.7"]["R40"]) == {"easy", "moderate", "hard"}
     assert "headline 3D AP40" not in capsys.readouterr().err
+    gt_as_results = main(["evaluate", "--labels", str(dataset), "--predictions", str(dataset / "training" / "label_2"),
+                          "--output", str(tmp_path / "self.json")])
+    assert gt_as_results == 0  # result lines without a score count with score 0, as in the reference
+    assert json.loads((tmp_path / "self.json").read_text())["recall"]["rcnn"]["0.7"] == 1.0
     (pred / "000002.txt").write_text("Car 0 0 0 1 2 3\n")
     before = out.read_text()
     assert main(["evaluate", "--labels", str(dataset), "--predictions", str(pred), "--output", str(out)]) == 2
