@@ -149,11 +149,16 @@ def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, soti
 
 
 def _runtime_probe(stages: Stages, cfg: RunConfig, run_dir: Path, name: str) -> dict:
-    from harness.runtime import compare_torch_onnx
+    import importlib.util
+    from harness.runtime import compare_openvino, compare_torch_onnx
     onnx_path = run_dir / "models" / f"{name}.onnx"
-    return stages.run(f"runtime_{name}", {"onnx": _file_digest(onnx_path), "frames": cfg.runtime_frames},
-                      lambda: compare_torch_onnx(run_dir / "models" / name / "checkpoint.pt", onnx_path,
-                                                 run_dir / "data" / "sotif", n_frames=cfg.runtime_frames))
+    data = run_dir / "data" / "sotif"
+    has_ov = importlib.util.find_spec("openvino") is not None
+    key = {"onnx": _file_digest(onnx_path), "frames": cfg.runtime_frames, "openvino": has_ov}
+    return stages.run(f"runtime_{name}", key,
+                      lambda: {**compare_torch_onnx(run_dir / "models" / name / "checkpoint.pt", onnx_path, data,
+                                                    n_frames=cfg.runtime_frames),
+                               "openvino": compare_openvino(onnx_path, data, n_frames=cfg.runtime_frames)})
 
 
 def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe: dict) -> dict:

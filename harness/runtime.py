@@ -66,6 +66,47 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
             "peak_memory_mb": peak_memory_mb(onnx_path, data, min(n_frames, 5))}
 
 
+def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
+    """OpenVINO vs onnxruntime on the same frames: latency p50/p90 and agreement.
+
+    A file that OpenVINO cannot read or run is reported under ``error`` (a finding, not a crash);
+    without the optional extra the result is ``{"error": "not installed"}``."""
+    try:
+        import openvino  # noqa: F401
+    except ImportError:
+        return {"error": "not installed"}
+    ort_det = OnnxDetector(onnx_path)
+    try:
+        ov_det = OnnxDetector(onnx_path, runtime="openvino")
+    except Exception as exc:  # noqa: BLE001 - any compile failure is the finding
+        return {"error": f"compile: {type(exc).__name__}: {str(exc).splitlines()[0][:300] if str(exc) else ''}"}
+    t_ov, t_ort, same, diffs = [], [], [], []
+    for fid in _frames(data, n_frames):
+        points, _, image, l2i, _ = _frame_inputs(ort_det, data, fid)
+        try:
+            ov_det(points, image, l2i)  # warm-up (shape-specific compilation)
+            t0 = time.perf_counter()
+            out_v = ov_det(points, image, l2i)
+            t_ov.append(1000 * (time.perf_counter() - t0))
+        except Exception as exc:  # noqa: BLE001
+            return {"error": f"frame {fid}: {type(exc).__name__}: {str(exc).splitlines()[0][:300] if str(exc) else ''}"}
+        ort_det(points, image, l2i)
+        t0 = time.perf_counter()
+        out_o = ort_det(points, image, l2i)
+        t_ort.append(1000 * (time.perf_counter() - t0))
+        ok, d = outputs_agree(out_o, out_v)
+        same.append(ok)
+        if not np.isnan(d):
+            diffs.append(d)
+    if not same:
+        return {"error": "no frames"}
+    return {"latency_ms_p50": float(np.median(t_ov)), "latency_ms_p90": float(np.percentile(t_ov, 90)),
+            "ort_ms_p50_same_frames": float(np.median(t_ort)),
+            "agreement": {"same_boxes": float(np.mean(same)), "max_abs_score_diff": max(diffs) if diffs else None,
+                          "frames": len(same)},
+            "error": None}
+
+
 def peak_memory_mb(onnx_path: Path, data: Path, n_frames: int = 5) -> float | None:
     proc = subprocess.run([sys.executable, "-m", "harness.runtime", str(onnx_path), str(data), str(n_frames)],
                           capture_output=True, text=True, timeout=600)

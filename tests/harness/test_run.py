@@ -32,6 +32,8 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     assert calls == []
     summary = json.loads((out / "results.json").read_text())
     assert summary["schema"] == "sotif-bench/run/1" and list(summary["models"]) == ["pointpillars"]
+    rt = summary["models"]["pointpillars"]["runtime"]
+    assert rt["agreement"]["same_boxes"] == 1.0 and "openvino" in rt  # second runtime, or why not
     for rel in ("config.json", "models/pointpillars.onnx", "predictions/pointpillars/predict.json",
                 "results/pointpillars.json", "tables/weather_headline.csv", "report.md", "index.html"):
         assert (out / rel).is_file(), rel

@@ -1,0 +1,40 @@
+"""OpenVINO next to onnxruntime: latency and agreement, and failures reported as findings."""
+import sys
+
+import numpy as np
+import pytest
+
+from harness.runtime import compare_openvino, outputs_agree
+
+
+def test_outputs_agree_sorts_by_score_and_spots_differences():
+    rng = np.random.default_rng(0)
+    boxes, scores = rng.normal(size=(5, 7)).astype(np.float32), rng.random(5).astype(np.float32)
+    perm = rng.permutation(5)
+    assert outputs_agree({"boxes": boxes, "scores": scores}, {"boxes": boxes[perm], "scores": scores[perm]}) == (True, 0.0)
+    moved = boxes.copy()
+    moved[2, 0] += 0.5
+    assert not outputs_agree({"boxes": boxes, "scores": scores}, {"boxes": moved, "scores": scores})[0]
+    assert not outputs_agree({"boxes": boxes, "scores": scores}, {"boxes": boxes[:4], "scores": scores[:4]})[0]
+
+
+def test_openvino_matches_onnxruntime_on_the_data(make_onnx, dataset, tmp_path):
+    pytest.importorskip("openvino")
+    res = compare_openvino(make_onnx(tmp_path / "c.onnx", two_stage=True), dataset, n_frames=3)
+    assert res["error"] is None
+    assert res["agreement"] == {"same_boxes": 1.0, "max_abs_score_diff": res["agreement"]["max_abs_score_diff"],
+                                "frames": 3}
+    assert res["latency_ms_p50"] > 0 and res["latency_ms_p90"] >= res["latency_ms_p50"]
+
+
+def test_openvino_missing_or_failing_is_reported(make_onnx, dataset, tmp_path, monkeypatch):
+    path = make_onnx(tmp_path / "c.onnx")
+    monkeypatch.setitem(sys.modules, "openvino", None)  # import fails as when the extra is absent
+    assert compare_openvino(path, dataset) == {"error": "not installed"}
+    monkeypatch.undo()
+    ov = pytest.importorskip("openvino")
+
+    def refuse(self, *a, **k):
+        raise RuntimeError("unsupported operation Foo\nmore detail")
+    monkeypatch.setattr(ov.Core, "compile_model", refuse)
+    assert compare_openvino(path, dataset)["error"] == "compile: RuntimeError: unsupported operation Foo"
