@@ -1,7 +1,8 @@
 """Simulator speed: LiDAR rays/s (with weather) against raw Embree on the same scene,
 frames/s of the full frame pipeline, and the time to generate the SOTIF set on 2 workers.
 
-    python benchmarks/bench_simulator.py [--repeats 10] [--frames 20] [--skip-full] [--workers 2]
+    python benchmarks/bench_simulator.py [--repeats 10] [--frames 20] [--workers 2]
+        [--weathers ClearNoon,HardRainNight] [--only rays,frames,full] [--default-malloc]
 """
 from __future__ import annotations
 
@@ -36,7 +37,8 @@ def _median_time(fn, repeats: int, clock=time.perf_counter) -> float:
     return float(np.median(times))
 
 
-def bench_rays(repeats: int, weather: str) -> None:
+def bench_rays(repeats: int, weathers: list[str]) -> None:
+    """Median wall and CPU time per scan: raw embreex on one merged BVH against scan() per weather."""
     road = RoadConfig()
     scene = RayScene(build_world(road, np.random.default_rng(0)))
     state = sotif_run(road, 27, np.random.default_rng(0))[10]
@@ -48,19 +50,21 @@ def bench_rays(repeats: int, weather: str) -> None:
     TriangleMesh(merged, np.concatenate([scene.world.triangles] + [t.astype(np.float32) for t in scene.vehicle_triangles]))
     origins = np.tile(np.array([state.pose.x, state.pose.y, spec.mount_height], np.float32), (n, 1))
     dirs32 = np.ascontiguousarray(dirs, dtype=np.float32)
-    merged.run(origins, dirs32, output=1)
-    t_raw = _median_time(lambda: merged.run(origins, dirs32, output=1), repeats)
-    rng = np.random.default_rng(1)
-    w = WEATHER_PRESETS[weather]
-    scan(scene, spec, state.pose, w, state.vehicles, rng)
-    t_lidar = _median_time(lambda: scan(scene, spec, state.pose, w, state.vehicles, rng), repeats)
-    c_raw = _median_time(lambda: merged.run(origins, dirs32, output=1), repeats, time.process_time)
-    c_lidar = _median_time(lambda: scan(scene, spec, state.pose, w, state.vehicles, rng), repeats, time.process_time)
-    print(f"rays per scan: {n} ({len(spec.elevations_deg)} channels x {spec.n_azimuth} azimuths)")
-    print(f"CPU time per scan: raw {c_raw * 1e3:.1f} ms, LiDAR {c_lidar * 1e3:.1f} ms = {100 * c_raw / c_lidar:.0f} % of raw")
-    print(f"raw embreex (one merged BVH, first hit + normals): {n / t_raw / 1e6:.2f} M rays/s ({t_raw * 1e3:.1f} ms/scan)")
-    print(f"LiDAR scan with {weather} (hits, intensity, weather effects): {n / t_lidar / 1e6:.2f} M rays/s "
-          f"({t_lidar * 1e3:.1f} ms/scan) = {100 * t_raw / t_lidar:.0f} % of raw")
+    runs = {"raw": lambda: merged.run(origins, dirs32, output=1),
+            "raw, hits up to max_range": lambda: merged.run(origins, dirs32, dists=spec.max_range, output=1)}
+    for name in weathers:
+        rng = np.random.default_rng(1)
+        runs[name] = lambda w=WEATHER_PRESETS[name], rng=rng: scan(scene, spec, state.pose, w, state.vehicles, rng)
+    print(f"rays per scan: {n} ({len(spec.elevations_deg)} channels x {spec.n_azimuth} azimuths), "
+          f"median of {repeats}, load average {_load()}")
+    wall, cpu = {}, {}
+    for name, fn in runs.items():
+        fn()
+        wall[name], cpu[name] = _median_time(fn, repeats), _median_time(fn, repeats, time.process_time)
+    for name in runs:
+        print(f"  {name:28s} {n / wall[name] / 1e6:5.2f} M rays/s ({wall[name] * 1e3:5.1f} ms wall, "
+              f"{cpu[name] * 1e3:5.1f} ms CPU) = {100 * cpu['raw'] / cpu[name]:3.0f} % of raw rays/s by CPU time, "
+              f"{100 * wall['raw'] / wall[name]:3.0f} % by wall time")
 
 
 def bench_frames(frames: int) -> None:
@@ -108,16 +112,25 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=10)
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--weather", default="HardRainNoon", choices=list(WEATHER_PRESETS))
-    ap.add_argument("--skip-full", action="store_true", help="skip the full SOTIF generation")
+    ap.add_argument("--weathers", default="ClearNoon,HardRainNight",
+                    help="comma-separated presets for the rays/s comparison")
+    ap.add_argument("--only", default="rays,frames,full", help="comma-separated parts: rays, frames, full")
+    ap.add_argument("--default-malloc", action="store_true",
+                    help="keep glibc's malloc settings (the generator's workers use simulator.dataset._worker_init)")
     args = ap.parse_args()
+    weathers = [w for w in args.weathers.split(",") if w]
+    bad = [w for w in weathers if w not in WEATHER_PRESETS]
+    parts = set(args.only.split(","))
+    if bad or not parts <= {"rays", "frames", "full"}:
+        ap.error(f"unknown weather(s) {bad} or part(s) {sorted(parts - {'rays', 'frames', 'full'})}")
     print(f"load average (1 min) at start: {_load()} on {os.cpu_count()} cores")
-    bench_rays(args.repeats, args.weather)
-    print("-- again with the generator workers' malloc settings (simulator.dataset._worker_init):")
-    _worker_init()
-    bench_rays(args.repeats, args.weather)
-    bench_frames(args.frames)
-    if not args.skip_full:
+    if not args.default_malloc:
+        _worker_init()
+    if "rays" in parts:
+        bench_rays(args.repeats, weathers)
+    if "frames" in parts:
+        bench_frames(args.frames)
+    if "full" in parts:
         bench_full(args.workers)
 
 

@@ -92,40 +92,66 @@ def inverse_square_ranges(u: np.ndarray, r_min: float, r_max: np.ndarray) -> np.
     return 1.0 / (1.0 / r_min - u * (1.0 / r_min - 1.0 / r_max))
 
 
-def rain_backscatter(r_hit: np.ndarray, alpha_rain: float, rng: np.random.Generator,
-                     r_min: float = 1.0, r_max: float = 12.0) -> np.ndarray:
-    """Range of a raindrop return per ray (NaN where the beam returns from its target).
+def thinned_bernoulli(n: int, p_max: float, p_of, rng: np.random.Generator) -> np.ndarray:
+    """Sorted indices i < n drawn independently with probability p_of(candidates)[i] <= p_max.
+
+    Thinning: candidates are drawn with the constant probability p_max (a binomial count, then
+    that many distinct indices), and each is kept with probability p_i / p_max, so only the
+    candidates' p_i are evaluated.
+    """
+    if p_max <= 0 or n == 0:
+        return np.zeros(0, np.int64)
+    cand = np.sort(rng.choice(n, rng.binomial(n, min(p_max, 1.0)), replace=False))
+    return cand[rng.random(len(cand)) * p_max < p_of(cand)]
+
+
+def rain_backscatter_sparse(r_hit: np.ndarray, alpha_rain: float, rng: np.random.Generator,
+                            r_min: float = 1.0, r_max: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
+    """Raindrop returns as (sorted ray indices, ranges).
 
     Probability 1 - exp(-k alpha L), L = min(r_hit, r_max) - r_min; range density ~ 1/r^2.
     """
-    out = np.full(r_hit.shape, np.nan)
-    span = np.clip(np.minimum(r_hit, r_max) - r_min, 0.0, None)
     if alpha_rain <= 0:
-        return out
-    p = 1.0 - np.exp(-BACKSCATTER_K * alpha_rain * span)
-    hit = rng.random(r_hit.shape) < p
-    far = np.minimum(r_hit[hit], r_max)
-    out[hit] = inverse_square_ranges(rng.random(int(hit.sum())), r_min, far)
-    return out
+        return np.zeros(0, np.int64), np.zeros(0)
+    p_of = lambda i: 1.0 - np.exp(-BACKSCATTER_K * alpha_rain * np.clip(np.minimum(r_hit[i], r_max) - r_min, 0.0, None))
+    idx = thinned_bernoulli(len(r_hit), 1.0 - math.exp(-BACKSCATTER_K * alpha_rain * (r_max - r_min)), p_of, rng)
+    return idx, inverse_square_ranges(rng.random(len(idx)), r_min, np.minimum(r_hit[idx], r_max))
 
 
-def fog_backscatter(r_hit: np.ndarray, alpha_fog: float, rng: np.random.Generator,
-                    r_min: float = 1.5, r_max: float = 30.0) -> np.ndarray:
-    """Range of a fog soft-target return per ray (NaN where the hard target returns first).
+def fog_backscatter_sparse(r_hit: np.ndarray, alpha_fog: float, rng: np.random.Generator,
+                           r_min: float = 1.5, r_max: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
+    """Fog soft-target returns as (sorted ray indices, ranges).
 
     Back-scatter coefficient beta = 0.046 / MOR with MOR = -ln(0.05) / alpha (Hahner et al.);
     a ray returns from the fog with probability 1 - exp(-k beta L), L the path inside
     [r_min, min(r_hit, r_max)], at a range of density ~ 1/r^2 (the near-range peak of the
     soft-target response).
     """
-    out = np.full(r_hit.shape, np.nan)
     if alpha_fog <= 0:
-        return out
+        return np.zeros(0, np.int64), np.zeros(0)
     beta = FOG_BETA_PER_MOR * alpha_fog / -math.log(0.05)
-    span = np.clip(np.minimum(r_hit, r_max) - r_min, 0.0, None)
-    hit = rng.random(r_hit.shape) < 1.0 - np.exp(-FOG_BACKSCATTER_K * beta * span)
-    out[hit] = inverse_square_ranges(rng.random(int(hit.sum())), r_min, np.minimum(r_hit[hit], r_max))
+    p_of = lambda i: 1.0 - np.exp(-FOG_BACKSCATTER_K * beta * np.clip(np.minimum(r_hit[i], r_max) - r_min, 0.0, None))
+    idx = thinned_bernoulli(len(r_hit), 1.0 - math.exp(-FOG_BACKSCATTER_K * beta * (r_max - r_min)), p_of, rng)
+    return idx, inverse_square_ranges(rng.random(len(idx)), r_min, np.minimum(r_hit[idx], r_max))
+
+
+def dense(n: int, sparse: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(n,) ranges from (ray indices, ranges), NaN elsewhere."""
+    out = np.full(n, np.nan)
+    out[sparse[0]] = sparse[1]
     return out
+
+
+def rain_backscatter(r_hit: np.ndarray, alpha_rain: float, rng: np.random.Generator,
+                     r_min: float = 1.0, r_max: float = 12.0) -> np.ndarray:
+    """Range of a raindrop return per ray (NaN where the beam returns from its target)."""
+    return dense(len(r_hit), rain_backscatter_sparse(r_hit, alpha_rain, rng, r_min, r_max))
+
+
+def fog_backscatter(r_hit: np.ndarray, alpha_fog: float, rng: np.random.Generator,
+                    r_min: float = 1.5, r_max: float = 30.0) -> np.ndarray:
+    """Range of a fog soft-target return per ray (NaN where the hard target returns first)."""
+    return dense(len(r_hit), fog_backscatter_sparse(r_hit, alpha_fog, rng, r_min, r_max))
 
 
 def sunlight_probability(sun_altitude_deg: float, cloudiness: float, p0: float = 2e-4) -> float:
@@ -134,14 +160,18 @@ def sunlight_probability(sun_altitude_deg: float, cloudiness: float, p0: float =
     return p0 * sun * (1.0 - 0.75 * cloudiness / 100.0)
 
 
+def sunlight_noise_sparse(n: int, sun_altitude_deg: float, cloudiness: float, max_range: float,
+                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Sunlight false returns as (sorted ray indices, ranges uniform in [1, max_range])."""
+    p = sunlight_probability(sun_altitude_deg, cloudiness)
+    idx = thinned_bernoulli(n, p, lambda i: np.full(len(i), p), rng)
+    return idx, rng.uniform(1.0, max_range, len(idx))
+
+
 def sunlight_noise(n: int, sun_altitude_deg: float, cloudiness: float, max_range: float,
                    rng: np.random.Generator) -> np.ndarray:
     """Range of a sunlight false return per ray (NaN for none), uniform in range."""
-    p = sunlight_probability(sun_altitude_deg, cloudiness)
-    out = np.full(n, np.nan)
-    hit = rng.random(n) < p
-    out[hit] = rng.uniform(1.0, max_range, int(hit.sum()))
-    return out
+    return dense(n, sunlight_noise_sparse(n, sun_altitude_deg, cloudiness, max_range, rng))
 
 
 def spray_cloud(centres: np.ndarray, headings: np.ndarray, dims: np.ndarray, speeds: np.ndarray,

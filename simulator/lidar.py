@@ -20,6 +20,9 @@ from simulator.vehicles import Vehicle
 from simulator.weather import WeatherPreset, fog_extinction, rain_rate_mmh, road_water_cover
 
 
+REFLECTANCE64 = REFLECTIVITY.astype(np.float64)
+
+
 def hdl64e_elevations() -> tuple[float, ...]:
     """HDL-64E-like channel elevations (deg): upper block 1/3 deg steps, lower block ~1/2 deg."""
     upper = np.linspace(2.0, -8.33, 32)
@@ -106,26 +109,94 @@ def rotate_yaw(v: np.ndarray, yaw: float) -> np.ndarray:
     return out
 
 
-def cast_pattern(scene: RayScene, spec: LidarSpec, pose: Pose):
-    """Hits of the full scan pattern: (unit dirs in the LiDAR frame, in the world, hits)."""
-    dirs = ray_directions(spec)
-    world_dirs = rotate_yaw(dirs, pose.yaw)
-    hits = scene.cast(np.array([pose.x, pose.y, spec.mount_height]), world_dirs)
-    return dirs, world_dirs, hits
+@numba.njit(cache=True)
+def world_rays(dirs: np.ndarray, yaw: float, origin: np.ndarray):
+    """Pattern rays in the world: dirs rotated by yaw (float64 and float32) and float32 origins (N, 3)."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    n = dirs.shape[0]
+    wd = np.empty((n, 3))
+    wd32 = np.empty((n, 3), np.float32)
+    o32 = np.empty((n, 3), np.float32)
+    ox, oy, oz = np.float32(origin[0]), np.float32(origin[1]), np.float32(origin[2])
+    for i in range(n):
+        wd[i, 0] = c * dirs[i, 0] - s * dirs[i, 1]
+        wd[i, 1] = s * dirs[i, 0] + c * dirs[i, 1]
+        wd[i, 2] = dirs[i, 2]
+        wd32[i, 0], wd32[i, 1], wd32[i, 2] = wd[i, 0], wd[i, 1], wd[i, 2]
+        o32[i, 0], o32[i, 1], o32[i, 2] = ox, oy, oz
+    return wd, wd32, o32
+
+
+@numba.njit(cache=True)
+def pattern_rays_near_spheres(origin, dirs, n_az, yaw, centres, radii):
+    """raycast.rays_near_spheres for the scan pattern (channel-major, azimuth c * 2 pi / n_az + yaw).
+
+    A ray passing within r of a centre has its horizontal projection within r of the centre's
+    projection, so only azimuth columns within asin(r / horizontal distance) (plus one column
+    of margin) of the centre's azimuth are tested, with the same exact test.
+    """
+    n = dirs.shape[0]
+    n_ch = n // n_az
+    step = 2.0 * np.pi / n_az
+    out = np.zeros(n, dtype=np.bool_)
+    for j in range(centres.shape[0]):
+        cx = centres[j, 0] - origin[0]
+        cy = centres[j, 1] - origin[1]
+        cz = centres[j, 2] - origin[2]
+        rad = radii[j]
+        rho = np.sqrt(cx * cx + cy * cy)
+        lo, hi = 0, n_az - 1
+        if rho > rad:
+            mid = (np.arctan2(cy, cx) - yaw) / step
+            half = np.arcsin(rad / rho) / step
+            lo, hi = int(np.floor(mid - half)) - 1, int(np.ceil(mid + half)) + 1
+            if hi - lo + 1 >= n_az:
+                lo, hi = 0, n_az - 1
+        for col in range(lo, hi + 1):
+            for ch in range(n_ch):
+                i = ch * n_az + col % n_az
+                if out[i]:
+                    continue
+                along = cx * dirs[i, 0] + cy * dirs[i, 1] + cz * dirs[i, 2]
+                if along < -rad:
+                    continue
+                if cx * cx + cy * cy + cz * cz - along * along <= rad * rad:
+                    out[i] = True
+    return out
 
 
 def scan(scene: RayScene, spec: LidarSpec, pose: Pose, weather: WeatherPreset,
          vehicles: list[Vehicle], rng: np.random.Generator) -> np.ndarray:
     """One scan: (N, 4) float32 x, y, z, intensity in the LiDAR frame (scene vehicles set)."""
-    dirs, world_dirs, hits = cast_pattern(scene, spec, pose)
+    dirs = ray_directions(spec)
+    origin = np.array([pose.x, pose.y, spec.mount_height])
+    world_dirs, wd32, o32 = world_rays(dirs, pose.yaw, origin)
     if spec.model == "carla":
-        r, inten = carla_returns(hits.t, spec, rng)
-    else:
-        r, inten = physics_returns(dirs, world_dirs, hits, spec, pose, weather, vehicles, rng)
-    ok = np.flatnonzero(np.isfinite(r))
-    out = np.empty((len(ok), 4), np.float32)
-    out[:, :3] = dirs[ok] * r[ok, None]
-    out[:, 3] = inten[ok]
+        r, inten = carla_returns(scene.cast(origin, world_dirs).t, spec, rng)
+        return points_from_returns(dirs, r, inten, 0.0, np.inf)
+    near = np.zeros(0, np.int64)
+    if scene.vehicles:
+        near = np.flatnonzero(pattern_rays_near_spheres(origin, world_dirs, spec.n_azimuth, pose.yaw, *scene.spheres))
+    st, dy = scene.cast_parts(o32, wd32, near, spec.max_range)  # farther surfaces return nothing
+    r, inten = physics_returns(st, near, dy, scene, world_dirs, spec, pose, weather, vehicles, rng)
+    return points_from_returns(dirs, r, inten, spec.min_range, spec.max_range)
+
+
+@numba.njit(cache=True)
+def points_from_returns(dirs, r, inten, min_range, max_range):
+    """(M, 4) float32 points of the rays whose range lies in [min_range, max_range] (NaN: none)."""
+    m = 0
+    for i in range(r.shape[0]):
+        if r[i] >= min_range and r[i] <= max_range:
+            m += 1
+    out = np.empty((m, 4), np.float32)
+    k = 0
+    for i in range(r.shape[0]):
+        if r[i] >= min_range and r[i] <= max_range:
+            for a in range(3):
+                out[k, a] = dirs[i, a] * r[i]
+            out[k, 3] = inten[i]
+            k += 1
     return out
 
 
@@ -137,87 +208,150 @@ def carla_returns(t: np.ndarray, spec: LidarSpec, rng: np.random.Generator) -> t
 
 
 @numba.njit(cache=True)
-def hard_returns(t, normal, dirs, material, refl_table, ground_table, cover, a_rain, a_fog, fog_start,
-                 min_power, min_range, max_range, sigma0, goodin_k, noise):
-    """Surface returns of N rays, fused: range with noise (NaN = lost) and intensity.
+def surface_return(r, cos_i, rho, ground, cover, a_rain, a_fog, fog_start, min_power, min_range, max_range):
+    """(range or NaN when lost, intensity) of one surface hit before range noise.
 
     Same formulas as simulator.effects: wet_reflectivity on ground materials, two-way
-    transmission, received power against min_power, range sigma hypot(sigma0, goodin_k r),
-    intensity rho cos(theta) T^2 exp(-0.004 r).
+    transmission, received power against min_power, intensity rho cos(theta) T^2 exp(-0.004 r).
     """
+    if not (r >= min_range and r <= max_range):
+        return np.nan, 0.0
+    cos_i = min(max(cos_i, 1e-3), 1.0)
+    if cover > 0 and ground:
+        nw = effects.WATER_INDEX  # Fresnel: rs = a / b, rp = c / d, one division
+        cos_t = np.sqrt(max(1.0 - (1.0 - cos_i * cos_i) * (1.0 / (nw * nw)), 0.0))
+        a, b = cos_i - nw * cos_t, cos_i + nw * cos_t
+        c, d = cos_t - nw * cos_i, cos_t + nw * cos_i
+        fres = 0.5 * (a * a * d * d + c * c * b * b) / (b * b * d * d)
+        rho = rho * (1.0 - effects.WET_DARKENING * cover) * ((1.0 - cover) + cover * (1.0 - fres) ** 2)
+    t2 = np.exp(-2.0 * a_rain * r - 2.0 * a_fog * max(r - fog_start, 0.0))
+    if rho * cos_i * t2 < min_power * (r * r):
+        return np.nan, 0.0
+    return r, min(max(rho * cos_i * t2 * np.exp(-effects.CARLA_ATTENUATION * r), 0.0), 1.0)
+
+
+@numba.njit(cache=True)
+def hard_returns(t, normal, dirs, material, refl_table, ground_table, cover, a_rain, a_fog, fog_start,
+                 min_power, min_range, max_range):
+    """Surface returns of N merged hits (raycast.Hits): range before noise (NaN = lost), intensity.
+
+    The reference for first_returns, which does the same straight from Embree's output."""
     n = t.shape[0]
-    r_out = np.full(n, np.nan)
-    i_out = np.zeros(n)
+    r_out = np.empty(n)
+    i_out = np.empty(n)
     for i in range(n):
-        r = t[i]
-        if not (r >= min_range and r <= max_range):
-            continue
         cos_i = -(normal[i, 0] * dirs[i, 0] + normal[i, 1] * dirs[i, 1] + normal[i, 2] * dirs[i, 2])
-        cos_i = min(max(cos_i, 1e-3), 1.0)
-        rho = refl_table[material[i]]
-        if cover > 0 and ground_table[material[i]]:
-            sin_t = np.sqrt(1.0 - cos_i * cos_i) / effects.WATER_INDEX
-            cos_t = np.sqrt(max(1.0 - sin_t * sin_t, 0.0))
-            nw = effects.WATER_INDEX
-            rs = (cos_i - nw * cos_t) / (cos_i + nw * cos_t)
-            rp = (cos_t - nw * cos_i) / (cos_t + nw * cos_i)
-            fres = 0.5 * (rs * rs + rp * rp)
-            rho = rho * (1.0 - effects.WET_DARKENING * cover) * ((1.0 - cover) + cover * (1.0 - fres) ** 2)
-        t2 = np.exp(-2.0 * a_rain * r - 2.0 * a_fog * max(r - fog_start, 0.0))
-        if rho * cos_i * t2 / (r * r) < min_power:
-            continue
-        r_out[i] = r + noise[i] * np.sqrt(sigma0 * sigma0 + (goodin_k * r) ** 2)
-        i_out[i] = min(max(rho * cos_i * t2 * np.exp(-effects.CARLA_ATTENUATION * r), 0.0), 1.0)
+        m = material[i]
+        r_out[i], i_out[i] = surface_return(t[i], cos_i, refl_table[m], ground_table[m], cover, a_rain, a_fog,
+                                            fog_start, min_power, min_range, max_range)
     return r_out, i_out
 
 
-def physics_returns(dirs: np.ndarray, world_dirs: np.ndarray, hits, spec: LidarSpec, pose: Pose,
-                    weather: WeatherPreset, vehicles: list[Vehicle],
+@numba.njit(cache=True)
+def first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs, refl_table, ground_table,
+                  cover, a_rain, a_fog, fog_start, min_power, min_range, max_range):
+    """raycast.merge_hits followed by hard_returns in one pass over Embree's raw output.
+
+    Static hits (t_s, prim_s, ng_s) of all N rays, vehicle hits (t_d, prim_d, ng_d) of the rays
+    `near` (sorted); returns range before noise (N,) (NaN = lost), intensity (N,), number of returns.
+    """
+    n = t_s.shape[0]
+    r_out = np.empty(n)
+    i_out = np.empty(n)
+    j, count = 0, 0
+    for i in range(n):
+        t, m = np.inf, -1
+        nx, ny, nz = 0.0, 0.0, 0.0
+        if prim_s[i] >= 0:
+            t, m = float(t_s[i]), mat_s[prim_s[i]]
+            nx, ny, nz = float(ng_s[i, 0]), float(ng_s[i, 1]), float(ng_s[i, 2])
+        if j < near.shape[0] and near[j] == i:
+            if prim_d[j] >= 0 and t_d[j] < t:
+                t, m = float(t_d[j]), mat_d[prim_d[j]]
+                nx, ny, nz = float(ng_d[j, 0]), float(ng_d[j, 1]), float(ng_d[j, 2])
+            j += 1
+        if m < 0:
+            r_out[i], i_out[i] = np.nan, 0.0
+            continue
+        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+        cos_i = abs(nx * dirs[i, 0] + ny * dirs[i, 1] + nz * dirs[i, 2]) / norm if norm > 0 else 0.0
+        r_out[i], i_out[i] = surface_return(t, cos_i, refl_table[m], ground_table[m], cover, a_rain, a_fog,
+                                            fog_start, min_power, min_range, max_range)
+        if r_out[i] == r_out[i]:
+            count += 1
+    return r_out, i_out, count
+
+
+@numba.njit(cache=True)
+def add_range_noise(r, noise, sigma0, goodin_k, far):
+    """Adds noise[k] * hypot(sigma0, goodin_k r) to the k-th finite range (in place); returns the
+    ranges with `far` in place of NaN (the path length the soft targets can use)."""
+    out = np.empty(r.shape[0])
+    k = 0
+    for i in range(r.shape[0]):
+        if r[i] == r[i]:
+            r[i] += noise[k] * np.sqrt(sigma0 * sigma0 + (goodin_k * r[i]) ** 2)
+            k += 1
+            out[i] = r[i]
+        else:
+            out[i] = far
+    return out
+
+
+def nearest_soft(sources: list[tuple[np.ndarray, np.ndarray, float]]):
+    """Per ray the nearest soft return over sparse sources [(ray indices, ranges, intensity level)]:
+    (sorted ray indices, ranges, levels); on a tie the earlier source wins."""
+    idx = np.concatenate([s[0] for s in sources]).astype(np.int64)
+    rng_ = np.concatenate([s[1] for s in sources]).astype(np.float64)
+    level = np.concatenate([np.full(len(s[0]), s[2]) for s in sources])
+    order = np.lexsort((np.arange(len(idx)), rng_, idx))
+    first = order[np.r_[True, idx[order][1:] != idx[order][:-1]]] if len(idx) else order
+    return idx[first], rng_[first], level[first]
+
+
+def physics_returns(st: dict, near: np.ndarray, dy: dict, scene: RayScene, world_dirs: np.ndarray,
+                    spec: LidarSpec, pose: Pose, weather: WeatherPreset, vehicles: list[Vehicle],
                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
-    """Physics mode ranges (NaN = no point) and intensities of all rays."""
-    n = len(dirs)
+    """Physics mode ranges (NaN = no point) and intensities of all rays from Embree's output."""
+    n = len(world_dirs)
     cover = road_water_cover(weather)
     rain = rain_rate_mmh(weather)
     a_rain, a_fog = effects.marshall_palmer_extinction(rain), fog_extinction(weather)
-    r_out, i_out = hard_returns(hits.t, hits.normal, world_dirs, hits.material, REFLECTIVITY.astype(np.float64),
-                                GROUND, cover, a_rain, a_fog, weather.fog_distance, spec.min_power,
-                                spec.min_range, spec.max_range, spec.range_noise_m,
-                                float(effects.goodin_range_sigma(1.0, rain, spec.rain_range_noise)),
-                                rng.standard_normal(n))
-    hard_or_far = np.where(np.isfinite(r_out), r_out, spec.max_range)
-    soft = np.full(n, np.inf)
-    soft_i = np.zeros(n)
+    r_out, i_out, count = first_returns(
+        st["tfar"], st["primID"], st["Ng"], scene.static_material, near, dy["tfar"], dy["primID"], dy["Ng"],
+        scene.dyn_material, world_dirs, REFLECTANCE64, GROUND, cover, a_rain, a_fog, weather.fog_distance,
+        spec.min_power, spec.min_range, spec.max_range)
+    goodin_k = float(effects.goodin_range_sigma(1.0, rain, spec.rain_range_noise))
+    hard_or_far = add_range_noise(r_out, rng.standard_normal(count), spec.range_noise_m, goodin_k, spec.max_range)
     sources = []
     if a_rain > 0:
-        sources.append((effects.rain_backscatter(hard_or_far, a_rain, rng), 0.02))
+        sources.append((*effects.rain_backscatter_sparse(hard_or_far, a_rain, rng), 0.02))
     if a_fog > 0:
-        sources.append((effects.fog_backscatter(hard_or_far, a_fog, rng), 0.03))
-    sources.append((effects.sunlight_noise(n, weather.sun_altitude_angle, weather.cloudiness, spec.max_range, rng), 0.01))
+        sources.append((*effects.fog_backscatter_sparse(hard_or_far, a_fog, rng), 0.03))
+    sources.append((*effects.sunlight_noise_sparse(n, weather.sun_altitude_angle, weather.cloudiness,
+                                                   spec.max_range, rng), 0.01))
     if cover > 0:
-        sources.append((spray_ranges(dirs, spec, pose, vehicles, cover, rng), 0.05))
-    for rs, level in sources:
-        nearer = rs < soft  # NaN compares False
-        soft[nearer] = rs[nearer]
-        soft_i[nearer] = level
-    use_soft = soft < np.nan_to_num(r_out, nan=np.inf)
-    r_out[use_soft] = soft[use_soft]
-    i_out[use_soft] = soft_i[use_soft] * rng.uniform(0.5, 1.5, int(use_soft.sum()))
-    r_out[(r_out < spec.min_range) | (r_out > spec.max_range)] = np.nan
+        sources.append((*spray_ranges(spec, pose, vehicles, cover, rng), 0.05))
+    idx, soft, level = nearest_soft(sources)
+    hard = r_out[idx]
+    use = soft < np.where(np.isnan(hard), np.inf, hard)
+    r_out[idx[use]] = soft[use]
+    i_out[idx[use]] = level[use] * rng.uniform(0.5, 1.5, int(use.sum()))
     return r_out, i_out
 
 
-def spray_ranges(dirs: np.ndarray, spec: LidarSpec, pose: Pose, vehicles: list[Vehicle], cover: float,
-                 rng: np.random.Generator) -> np.ndarray:
-    """Per-ray range of a spray droplet cluster (NaN for none), clusters snapped to the nearest ray."""
-    out = np.full(len(dirs), np.nan)
+def spray_ranges(spec: LidarSpec, pose: Pose, vehicles: list[Vehicle], cover: float,
+                 rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Spray droplet clusters snapped to their nearest ray: (sorted ray indices, nearest range per ray)."""
+    none = (np.zeros(0, np.int64), np.zeros(0))
     if cover <= 0 or not vehicles:
-        return out
+        return none
     centres = np.array([[v.x, v.y, 0.0] for v in vehicles])
     pts = effects.spray_cloud(centres, np.array([v.heading for v in vehicles]),
                               np.array([v.dims for v in vehicles]), np.array([v.speed for v in vehicles]),
                               cover, rng)
     if len(pts) == 0:
-        return out
+        return none
     local = pose.to_lidar(pts, spec.mount_height)
     rng_ = np.linalg.norm(local, axis=1)
     el = np.rad2deg(np.arcsin(local[:, 2] / np.maximum(rng_, 1e-6)))
@@ -226,8 +360,7 @@ def spray_ranges(dirs: np.ndarray, spec: LidarSpec, pose: Pose, vehicles: list[V
     ch = np.abs(el[:, None] - elev[None]).argmin(1)
     close = np.abs(el - elev[ch]) < 0.2
     col = np.round(az / (2 * np.pi) * spec.n_azimuth).astype(int) % spec.n_azimuth
-    idx = ch * spec.n_azimuth + col
-    nearest = np.full(len(dirs), np.inf)
-    np.minimum.at(nearest, idx[close], rng_[close])
-    out[np.isfinite(nearest)] = nearest[np.isfinite(nearest)]
-    return out
+    idx, r = (ch * spec.n_azimuth + col)[close], rng_[close]
+    order = np.lexsort((r, idx))
+    first = order[np.r_[True, idx[order][1:] != idx[order][:-1]]] if len(idx) else order
+    return idx[first].astype(np.int64), r[first]

@@ -36,9 +36,9 @@ def _scene(triangles: np.ndarray) -> rtcs.EmbreeScene:
     return scene
 
 
-def _run(scene: rtcs.EmbreeScene, origins: np.ndarray, dirs: np.ndarray) -> dict:
+def _run(scene: rtcs.EmbreeScene, origins: np.ndarray, dirs: np.ndarray, max_t: float = 1e37) -> dict:
     return scene.run(np.ascontiguousarray(origins, dtype=np.float32),
-                     np.ascontiguousarray(dirs, dtype=np.float32), output=1)
+                     np.ascontiguousarray(dirs, dtype=np.float32), dists=max_t, output=1)
 
 
 def first_hit_distance(triangles: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
@@ -88,9 +88,11 @@ class RayScene:
     def __init__(self, world: World):
         self.world = world
         self._static = _scene(world.triangles)
+        self.static_material = world.material.astype(np.int64)  # (T,) material id per world triangle
         self._dynamic: rtcs.EmbreeScene | None = None
-        self._dyn_material = np.zeros(0, np.int64)
-        self._dyn_actor = np.zeros(0, np.int64)
+        self.dyn_material = np.zeros(1, np.int64)  # (V,) per vehicle triangle (one dummy entry when empty)
+        self.dyn_actor = np.zeros(1, np.int64)
+        self.spheres = (np.zeros((0, 3)), np.zeros(0))  # vehicle bounding spheres: centres (K, 3), radii (K,)
         self.vehicle_triangles: list[np.ndarray] = []
         self.vehicles: list[Vehicle] = []
 
@@ -104,36 +106,43 @@ class RayScene:
             mats.append(m)
             actors.append(np.full(len(t), i))
         self.vehicle_triangles = tris
-        self._spheres = (np.array([t.reshape(-1, 3).mean(0) for t in tris]).reshape(-1, 3),
-                         np.array([np.linalg.norm(t.reshape(-1, 3) - t.reshape(-1, 3).mean(0), axis=1).max() + 0.01
-                                   for t in tris]))
+        self.spheres = (np.array([t.reshape(-1, 3).mean(0) for t in tris]).reshape(-1, 3),
+                        np.array([np.linalg.norm(t.reshape(-1, 3) - t.reshape(-1, 3).mean(0), axis=1).max() + 0.01
+                                  for t in tris]))
         if not tris:
             self._dynamic = None
+            self.dyn_material, self.dyn_actor = np.zeros(1, np.int64), np.zeros(1, np.int64)
             return
         self._dynamic = _scene(np.concatenate(tris))
-        self._dyn_material = np.concatenate(mats)
-        self._dyn_actor = np.concatenate(actors)
+        self.dyn_material = np.concatenate(mats).astype(np.int64)
+        self.dyn_actor = np.concatenate(actors).astype(np.int64)
 
     def _candidates(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Rays that may hit a vehicle (bounding spheres); all rays when origins differ."""
         if origin.ndim != 1:
             return np.ones(len(dirs), bool)
-        return rays_near_spheres(origin.astype(np.float64), dirs.astype(np.float64, copy=False), *self._spheres)
+        return rays_near_spheres(origin.astype(np.float64), dirs.astype(np.float64, copy=False), *self.spheres)
+
+    def cast_parts(self, origins32: np.ndarray, dirs32: np.ndarray, near: np.ndarray,
+                   max_t: float = 1e37) -> tuple[dict, dict]:
+        """Raw Embree results (float32 (N, 3) origins and dirs, hits up to max_t): the static world
+        for all rays and the vehicles for the rays `near` (sorted indices) only."""
+        st = _run(self._static, origins32, dirs32, max_t)
+        if self._dynamic is None or len(near) == 0:
+            return st, {"tfar": np.zeros(0, np.float32), "primID": np.zeros(0, np.int32),
+                        "Ng": np.zeros((0, 3), np.float32)}
+        return st, _run(self._dynamic, origins32[near], dirs32[near], max_t)
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> Hits:
         """First hits of rays (origins (N, 3) or (3,), unit dirs (N, 3)), world frame."""
         origin = np.asarray(origins, dtype=np.float64)
-        origins = np.broadcast_to(origin.astype(np.float32), dirs.shape)
-        st = _run(self._static, origins, dirs)
+        origins32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
         near = np.zeros(0, np.int64)
-        dy = {"tfar": np.zeros(0, np.float32), "primID": np.zeros(0, np.int32), "Ng": np.zeros((0, 3), np.float32)}
         if self._dynamic is not None:
             near = np.flatnonzero(self._candidates(origin, dirs))
-            dy = _run(self._dynamic, origins[near], dirs[near])
-        dyn_mat = self._dyn_material if self._dynamic is not None else np.zeros(1, np.int64)
-        dyn_act = self._dyn_actor if self._dynamic is not None else np.zeros(1, np.int64)
-        return Hits(*merge_hits(st["tfar"], st["primID"], st["Ng"], self.world.material.astype(np.int64),
-                                near, dy["tfar"], dy["primID"], dy["Ng"], dyn_mat, dyn_act, dirs))
+        st, dy = self.cast_parts(origins32, np.ascontiguousarray(dirs, dtype=np.float32), near)
+        return Hits(*merge_hits(st["tfar"], st["primID"], st["Ng"], self.static_material,
+                                near, dy["tfar"], dy["primID"], dy["Ng"], self.dyn_material, self.dyn_actor, dirs))
 
 
 @numba.njit(cache=True)

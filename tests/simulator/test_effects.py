@@ -92,3 +92,34 @@ def test_spray_behind_vehicle():
     assert len(pts) > 0 and (pts[:, 0] <= 10.0 - 2.0).all() and (pts[:, 2] >= 0).all()
     assert len(effects.spray_cloud(np.array([[0.0, 0, 0]]), np.array([0.0]), np.array([[4.0, 2, 1.5]]),
                                    np.array([30.0]), 0.0, rng)) == 0
+
+
+def test_thinned_bernoulli_hits_each_index_with_its_probability():
+    rng = np.random.default_rng(8)
+    n, trials = 40, 20000
+    p = rng.uniform(0.0, 0.05, n)
+    p[:3] = [0.0, 0.05, 0.025]
+    calls = []
+    counts = np.zeros(n)
+    for _ in range(trials):
+        idx = effects.thinned_bernoulli(n, 0.05, lambda i: (calls.append(len(i)), p[i])[1], rng)
+        assert (np.diff(idx) > 0).all()
+        counts[idx] += 1
+    expected = trials * p
+    assert counts[0] == 0
+    np.testing.assert_array_less(np.abs(counts - expected), 5 * np.sqrt(expected * (1 - p)) + 1)
+    assert abs(np.mean(calls) - n * 0.05) < 0.1  # only the candidates' probabilities are evaluated
+    assert len(effects.thinned_bernoulli(n, 0.0, lambda i: p[i], rng)) == 0
+
+
+def test_sparse_effects_equal_their_dense_forms():
+    r_hit = np.random.default_rng(9).uniform(0.5, 60.0, 50000)
+    for sparse, dense, args in ((effects.rain_backscatter_sparse, effects.rain_backscatter, (r_hit, 0.004)),
+                                (effects.fog_backscatter_sparse, effects.fog_backscatter, (r_hit, 0.03))):
+        idx, r = sparse(*args, np.random.default_rng(10))
+        out = dense(*args, np.random.default_rng(10))
+        np.testing.assert_array_equal(np.flatnonzero(np.isfinite(out)), idx)
+        np.testing.assert_array_equal(out[idx], r)
+        assert len(idx) > 20 and (r >= 1.0).all() and (r <= np.minimum(r_hit[idx], 30.0)).all()
+    idx, r = effects.sunlight_noise_sparse(500000, 90, 0, 120, np.random.default_rng(11))
+    assert abs(len(idx) - 100) < 50 and (r >= 1).all() and (r <= 120).all()

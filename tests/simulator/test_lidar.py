@@ -94,24 +94,26 @@ def test_carla_mode_ignores_weather(highway_scene):
     assert 0.4 < len(scans[0]) / len(physics) < 0.75  # CARLA drops ~45 % at random plus weak returns
 
 
-def test_fused_hard_returns_match_effect_formulas():
-    from simulator import effects
-    from simulator.lidar import hard_returns
-    from simulator.materials import GROUND, REFLECTIVITY
-
-    rng = np.random.default_rng(5)
-    n = 5000
+def _random_hits(rng, n):
     t = np.where(rng.random(n) < 0.1, np.inf, rng.uniform(0.2, 140, n))
     dirs = rng.normal(size=(n, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     normal = rng.normal(size=(n, 3))
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     normal *= -np.sign(np.sum(normal * dirs, 1))[:, None]
-    mat = rng.choice([0, 1, 4, 9, 33, 40], n)
-    noise = rng.standard_normal(n)
-    cover, a_rain, a_fog, fog_start, p_min, k = 0.6, 0.003, 0.002, 5.0, 1.4e-6, 0.015
+    return t, dirs, normal, rng.choice([0, 1, 4, 9, 33, 40], n)
+
+
+def test_hard_returns_match_effect_formulas():
+    from simulator import effects
+    from simulator.lidar import hard_returns
+    from simulator.materials import GROUND, REFLECTIVITY
+
+    rng = np.random.default_rng(5)
+    t, dirs, normal, mat = _random_hits(rng, 5000)
+    cover, a_rain, a_fog, fog_start, p_min = 0.6, 0.003, 0.002, 5.0, 1.4e-6
     r_out, i_out = hard_returns(t, normal, dirs, mat, REFLECTIVITY.astype(float), GROUND, cover, a_rain, a_fog,
-                                fog_start, p_min, 1.0, 120.0, 0.02, k, noise)
+                                fog_start, p_min, 1.0, 120.0)
     cos_i = np.clip(-np.sum(normal * dirs, 1), 1e-3, 1)
     rho = REFLECTIVITY[mat].astype(float)
     rho = np.where(GROUND[mat], effects.wet_reflectivity(rho, cos_i, cover), rho)
@@ -119,10 +121,116 @@ def test_fused_hard_returns_match_effect_formulas():
     t2 = effects.two_way_transmission(tf, a_rain, a_fog, fog_start)
     ok = (tf >= 1) & (tf <= 120) & (effects.received_power(rho, cos_i, tf, t2) >= p_min)
     np.testing.assert_array_equal(np.isfinite(r_out), ok)
-    np.testing.assert_allclose(r_out[ok], (tf + noise * np.hypot(0.02, k * tf))[ok], rtol=1e-12)
+    np.testing.assert_array_equal(r_out[ok], tf[ok])
     ref_i = np.clip(rho * cos_i * t2 * np.exp(-0.004 * tf), 0, 1)
     np.testing.assert_allclose(i_out[ok], ref_i[ok], rtol=1e-12)
     assert 0.3 < ok.mean() < 0.95
+
+
+@pytest.mark.parametrize("cover", [0.0, 0.8])
+def test_first_returns_equal_merge_then_hard_returns(cover):
+    """The fused pass over Embree's raw output equals raycast.merge_hits followed by hard_returns."""
+    from simulator.lidar import first_returns, hard_returns
+    from simulator.materials import GROUND, REFLECTIVITY
+    from simulator.raycast import merge_hits
+
+    rng = np.random.default_rng(11)
+    n, n_static, n_dyn = 6000, 300, 80
+    t, dirs, _, _ = _random_hits(rng, n)
+    t_s = np.where(np.isfinite(t), t, 1e37).astype(np.float32)
+    prim_s = np.where(np.isfinite(t), rng.integers(0, n_static, n), -1).astype(np.int32)
+    ng_s = (rng.normal(size=(n, 3)) * rng.uniform(0.1, 5, (n, 1))).astype(np.float32)
+    ng_s[rng.random(n) < 0.01] = 0.0  # degenerate triangles
+    near = np.flatnonzero(rng.random(n) < 0.3)
+    t_d = rng.uniform(0.5, 150, len(near)).astype(np.float32)
+    prim_d = np.where(rng.random(len(near)) < 0.5, rng.integers(0, n_dyn, len(near)), -1).astype(np.int32)
+    ng_d = rng.normal(size=(len(near), 3)).astype(np.float32)
+    mat_s, mat_d = rng.choice([0, 1, 2, 4, 13], n_static), rng.choice([9, 10, 33, 40], n_dyn)
+    refl = REFLECTIVITY.astype(np.float64)
+    weather = (cover, 0.004, 0.003, 0.75, 1.4e-6, 1.0, 120.0)
+    r, i, count = first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs, refl, GROUND, *weather)
+    t_ref, normal32, mat_ref, actor = merge_hits(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d,
+                                                 np.zeros(n_dyn, np.int64), dirs)
+    ng = ng_s.astype(np.float64)  # the chosen triangle's normal in float64 (merge_hits' is float32-exact)
+    dyn = near[actor[near] >= 0]
+    ng[dyn] = ng_d[actor[near] >= 0]
+    norm = np.linalg.norm(ng, axis=1, keepdims=True)
+    normal = np.where(norm > 0, ng / np.where(norm > 0, norm, 1), 0) * -np.sign(np.sum(ng * dirs, 1))[:, None]
+    hit = actor != -1  # raycast.MISS
+    np.testing.assert_allclose(normal[hit], normal32[hit], atol=1e-6)
+    r_ref, i_ref = hard_returns(np.where(t_ref >= 1e37, np.inf, t_ref), normal, dirs, mat_ref, refl, GROUND, *weather)
+    np.testing.assert_array_equal(np.isnan(r), np.isnan(r_ref))
+    assert count == np.isfinite(r_ref).sum() > n // 4
+    np.testing.assert_array_equal(r[count > 0], r_ref[count > 0])
+    np.testing.assert_allclose(i, i_ref, rtol=1e-12, atol=1e-15)
+
+
+def test_pattern_culling_matches_brute_force():
+    from simulator.lidar import pattern_rays_near_spheres, world_rays
+    from simulator.raycast import rays_near_spheres
+
+    spec = LidarSpec()
+    rng = np.random.default_rng(12)
+    for trial in range(6):
+        yaw = rng.uniform(-4, 4)
+        origin = rng.uniform(-50, 50, 3)
+        wd, wd32, o32 = world_rays(ray_directions(spec), yaw, origin)
+        np.testing.assert_allclose(wd, ray_directions(spec) @ Pose(0, 0, yaw).rotation().T, atol=1e-12)
+        np.testing.assert_array_equal(wd32, wd.astype(np.float32))
+        assert (o32 == origin.astype(np.float32)).all()
+        centres = origin + rng.uniform(-40, 40, (9, 3)) * [1, 1, 0.1]
+        centres[0] = origin + [rng.uniform(-1, 1), 0.5, 0.2]  # sphere around the sensor: every column
+        centres[1] = origin + [30.0, -0.3, 0.0]  # straddles the azimuth wrap at yaw
+        centres[1, :2] = origin[:2] + 30 * np.array([np.cos(yaw), np.sin(yaw)]) + [0.0, -0.3]
+        radii = rng.uniform(0.5, 4, 9)
+        got = pattern_rays_near_spheres(origin, wd, spec.n_azimuth, yaw, centres, radii)
+        np.testing.assert_array_equal(got, rays_near_spheres(origin, wd, centres, radii))
+        assert got.sum() > 1000
+
+
+def test_range_noise_and_points_match_numpy():
+    from simulator.lidar import add_range_noise, points_from_returns
+
+    rng = np.random.default_rng(13)
+    n = 3000
+    r = np.where(rng.random(n) < 0.2, np.nan, rng.uniform(0.5, 130, n))
+    ok = np.isfinite(r)
+    noise = rng.standard_normal(ok.sum())
+    ref = r.copy()
+    ref[ok] += noise * np.hypot(0.02, 0.015 * r[ok])
+    got = r.copy()
+    far = add_range_noise(got, noise, 0.02, 0.015, 120.0)
+    np.testing.assert_allclose(got, ref, rtol=1e-14)
+    np.testing.assert_array_equal(far, np.where(ok, got, 120.0))
+    dirs = rng.normal(size=(n, 3))
+    inten = rng.random(n)
+    pts = points_from_returns(dirs, got, inten, 1.0, 120.0)
+    keep = (got >= 1.0) & (got <= 120.0)
+    np.testing.assert_array_equal(pts, np.c_[dirs[keep] * got[keep, None], inten[keep]].astype(np.float32))
+
+
+def test_nearest_soft_matches_dense_minimum():
+    from simulator.lidar import nearest_soft
+
+    rng = np.random.default_rng(14)
+    n = 500
+    sources = []
+    for level in (0.02, 0.03, 0.01, 0.05):
+        idx = np.sort(rng.choice(n, rng.integers(0, 120), replace=False))
+        sources.append((idx, rng.choice([2.0, 3.0, 5.0], len(idx)), level))  # many equal ranges: ties
+    soft, soft_level = np.full(n, np.inf), np.zeros(n)
+    for idx, r, level in sources:  # the dense reference: a strictly nearer source replaces
+        dense = np.full(n, np.nan)
+        dense[idx] = r
+        nearer = dense < soft
+        soft[nearer], soft_level[nearer] = dense[nearer], level
+    idx, r, level = nearest_soft(sources)
+    hit = np.flatnonzero(np.isfinite(soft))
+    np.testing.assert_array_equal(idx, hit)
+    np.testing.assert_array_equal(r, soft[hit])
+    np.testing.assert_array_equal(level, soft_level[hit])
+    empty = nearest_soft([(np.zeros(0, np.int64), np.zeros(0), 0.01)])
+    assert all(len(a) == 0 for a in empty)
 
 
 def test_spray_clusters_land_on_their_nearest_ray():
@@ -131,10 +239,9 @@ def test_spray_clusters_land_on_their_nearest_ray():
     pose = _pose()
     spec = LidarSpec()
     car = _car(pose, 15, 0)
-    r = spray_ranges(ray_directions(spec), spec, pose, [car], 1.0, np.random.default_rng(7))
-    hit = np.flatnonzero(np.isfinite(r))
-    assert len(hit) > 0
-    pts = ray_directions(spec)[hit] * r[hit, None]  # LiDAR frame
+    idx, r = spray_ranges(spec, pose, [car], 1.0, np.random.default_rng(7))
+    assert len(idx) > 0 and (np.diff(idx) > 0).all()
+    pts = ray_directions(spec)[idx] * r[:, None]  # LiDAR frame
     assert (pts[:, 0] < 15 - 4.75 / 2 + 0.1).all() and (pts[:, 0] > 15 - 4.75 / 2 - 4.6).all()
     assert (np.abs(pts[:, 1]) < 2.5).all() and (pts[:, 2] > -1.73).all()
-    assert np.isnan(spray_ranges(ray_directions(spec), spec, pose, [car], 0.0, np.random.default_rng(7))).all()
+    assert len(spray_ranges(spec, pose, [car], 0.0, np.random.default_rng(7))[0]) == 0
