@@ -1,15 +1,17 @@
 """Training augmentation of one frame (points and boxes together, LiDAR frame).
 
-Global flip about the x axis (y -> -y), global rotation about z, global scaling, as in
-SECOND / OpenPCDet; the random draws come from the ``numpy.random.Generator`` passed in.
+Ground-truth database sampling (``harness.gt_database``, when a database is passed), then global
+flip about the x axis (y -> -y), global rotation about z, global scaling, as in SECOND / OpenPCDet;
+the random draws come from the ``numpy.random.Generator`` passed in.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from harness.boxes import wrap_angle
+from harness.gt_database import GtDatabase, GtSamplingConfig, sample_objects
 from harness.types import Sample
 
 
@@ -18,6 +20,7 @@ class AugmentConfig:
     flip_y: bool = True  # mirror left/right with probability 0.5
     rotation: float = np.pi / 4  # max |global yaw rotation|, rad
     scale: tuple[float, float] = (0.95, 1.05)  # global scale range
+    gt_sampling: GtSamplingConfig = field(default_factory=GtSamplingConfig)  # LiDAR-only models
 
 
 def flip_y(points: np.ndarray, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -56,12 +59,20 @@ def _transform(flipped: bool, angle: float, factor: float) -> np.ndarray:
     return np.diag([factor, factor, factor, 1.0]) @ rot @ flip
 
 
-def augment(sample: Sample, rng: np.random.Generator, cfg: AugmentConfig = AugmentConfig()) -> Sample:
-    """A randomly flipped, rotated and scaled copy of a sample.
+def augment(sample: Sample, rng: np.random.Generator, cfg: AugmentConfig = AugmentConfig(),
+            database: GtDatabase | None = None) -> Sample:
+    """A randomly flipped, rotated and scaled copy of a sample, with objects of ``database``
+    pasted in first when one is given and ``cfg.gt_sampling.enabled``.
 
     ``lidar2img`` (camera models) is composed with the inverse map, so the image still
-    matches the moved points.
+    matches the moved points. Pasted objects would not be in the image: a sample with an
+    image gets no ground-truth sampling (``ValueError``).
     """
+    if database is not None and cfg.gt_sampling.enabled:
+        if sample.image is not None or sample.lidar2img is not None:
+            raise ValueError(f"frame {sample.frame_id}: ground-truth sampling of a frame with an image "
+                             "would paste objects the image does not show")
+        sample = sample_objects(sample, database, rng, cfg.gt_sampling)
     points, boxes = sample.points, sample.gt_boxes.reshape(-1, 7)
     flipped = bool(cfg.flip_y and rng.random() < 0.5)
     angle = float(rng.uniform(-cfg.rotation, cfg.rotation)) if cfg.rotation > 0 else 0.0

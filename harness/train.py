@@ -21,8 +21,9 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from harness.augment import augment
+from harness.augment import AugmentConfig, augment
 from harness.dataset import KittiDataset, config_hash, dataset_hash, has_split
+from harness.gt_database import load_or_build
 from harness.kitti import atomic_write_bytes
 from models import zoo
 
@@ -72,12 +73,13 @@ def _batches(n: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]
     return [order[i:i + batch_size] for i in range(0, n, batch_size)]
 
 
-def _run_epoch(net, ds, optimizer, scheduler, tcfg: TrainConfig, seed: int, epoch: int, bar) -> float:
+def _run_epoch(net, ds, optimizer, scheduler, tcfg: TrainConfig, seed: int, epoch: int, bar,
+               aug: AugmentConfig = AugmentConfig(), database=None) -> float:
     net.train()
     losses = []
     for step, idx in enumerate(_batches(len(ds), tcfg.batch_size, seed, epoch)):
         rng = np.random.default_rng([seed, epoch, step])
-        samples = [augment(ds[int(i)], rng) for i in idx]
+        samples = [augment(ds[int(i)], rng, aug, database) for i in idx]
         loss = net.loss(samples)["loss"]
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
@@ -121,8 +123,10 @@ def validation_ap(net, data: Path, max_frames: int | None = None) -> dict:
 
 
 def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: int | None = None,
-          device: str = "cpu", seed: int = 0, progress: bool = True) -> Path:
-    """Train ``model`` on ``<data>/ImageSets/train.txt``; returns ``<out>/checkpoint.pt``."""
+          device: str = "cpu", seed: int = 0, progress: bool = True, aug: AugmentConfig = AugmentConfig()) -> Path:
+    """Train ``model`` on ``<data>/ImageSets/train.txt``; returns ``<out>/checkpoint.pt``.
+    LiDAR-only models get ground-truth sampling (``aug.gt_sampling``, database cached in
+    ``<data>/gt_database``); camera models do not (pasted objects are not in the image)."""
     data, out = Path(data), Path(out)
     cfg = zoo.config(model, profile)
     tcfg = TRAIN_CONFIGS[profile]
@@ -134,9 +138,11 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
         ds = KittiDataset(data, "train", with_image=net.uses_camera)
         if len(ds) == 0:
             raise ValueError(f"{data / 'ImageSets' / 'train.txt'}: no training frames")
+        use_gts = aug.gt_sampling.enabled and not net.uses_camera
+        database = load_or_build(data, data / "gt_database", aug.gt_sampling) if use_gts else None
         ident = {"model": model, "profile": profile, "data_hash": dataset_hash(data),
                  "config_hash": config_hash({"model": asdict(cfg), "train": asdict(tcfg), "epochs": epochs,
-                                             "seed": seed})}
+                                             "seed": seed, "augment": asdict(aug), "gt_sampling": use_gts})}
         optimizer = torch.optim.AdamW(net.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
         steps = epochs * math.ceil(len(ds) / tcfg.batch_size)
         scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=tcfg.lr, total_steps=steps,
@@ -147,7 +153,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
                    disable=not progress, unit="step")
         start, loss = time.perf_counter(), math.nan
         for epoch in range(done, epochs):
-            loss = _run_epoch(net, ds, optimizer, scheduler, tcfg, seed, epoch, bar)
+            loss = _run_epoch(net, ds, optimizer, scheduler, tcfg, seed, epoch, bar, aug, database)
             _atomic_save({**ident, "config": asdict(cfg), "state_dict": net.state_dict(), "epoch": epoch + 1,
                           "epochs": epochs, "optimizer": optimizer.state_dict(),
                           "scheduler": scheduler.state_dict(), "final_loss": loss, "seed": seed,

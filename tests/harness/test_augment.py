@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from harness.augment import AugmentConfig, augment, flip_y, rotate_z, scale
 from harness.boxes import points_in_boxes
@@ -43,3 +44,35 @@ def test_lidar2img_follows_the_points():
     hom = lambda p: np.c_[p[:, :3], np.ones(len(p))]
     before, after = hom(s.points) @ l2i.T, hom(a.points) @ a.lidar2img.T
     np.testing.assert_allclose(after[:, :2] / after[:, 2:3], before[:, :2] / before[:, 2:3], rtol=1e-3, atol=1e-2)
+
+
+def _car_database(seed):
+    from harness.gt_database import GtDatabase
+    s = synthetic_sample(np.random.default_rng(seed), num_cars=4, extent=30.0, frame_id="db")
+    inside = _membership(s)
+    parts = [s.points[inside[:, k]] for k in range(len(s.gt_boxes))]
+    counts = np.array([len(p) for p in parts])
+    return GtDatabase(np.concatenate(parts), np.r_[0, np.cumsum(counts)], s.gt_boxes, s.gt_names,
+                      np.array(["db"] * len(counts)), counts, np.zeros(len(counts), int))
+
+
+def test_gt_sampling_runs_before_the_global_transforms():
+    from harness.gt_database import GtSamplingConfig, sample_objects
+    db = _car_database(5)
+    s = synthetic_sample(np.random.default_rng(6), num_cars=1, extent=30.0)
+    a = augment(s, np.random.default_rng(7), AugmentConfig(rotation=np.pi), db)
+    assert len(a.gt_boxes) > 1 and len(a.gt_names) == len(a.gt_boxes)
+    rng = np.random.default_rng(7)
+    pasted = sample_objects(s, db, rng, GtSamplingConfig())
+    np.testing.assert_array_equal(augment(pasted, rng, AugmentConfig(rotation=np.pi)).points, a.points)
+    assert np.array_equal(_membership(a), _membership(pasted))
+    off = AugmentConfig(gt_sampling=GtSamplingConfig(enabled=False))
+    np.testing.assert_array_equal(augment(s, np.random.default_rng(8), off, db).points,
+                                  augment(s, np.random.default_rng(8), off).points)
+
+
+def test_gt_sampling_refuses_frames_with_an_image():
+    s = synthetic_sample(np.random.default_rng(9))
+    s.lidar2img = np.eye(4, dtype=np.float32)
+    with pytest.raises(ValueError, match="image"):
+        augment(s, np.random.default_rng(0), AugmentConfig(), _car_database(1))
