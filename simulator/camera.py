@@ -93,7 +93,7 @@ def sun_visible(scene: RayScene, cam_w: np.ndarray, dirs_w: np.ndarray, hits, p:
     if len(idx) == 0:
         return lit
     pts = cam_w + dirs_w[idx] * hits.t[idx, None] + hits.normal[idx] * 0.02
-    lit[idx] = ~np.isfinite(scene.cast(pts, np.broadcast_to(sun, pts.shape).copy()).t)
+    lit[idx] = ~scene.occluded(pts, np.broadcast_to(sun, pts.shape))
     return lit
 
 
@@ -115,8 +115,10 @@ def shade(hits, dirs_w: np.ndarray, lit: np.ndarray, ego_fwd: np.ndarray, p: Wea
     cover = road_water_cover(p)
     road = hit & ROAD[hits.material]
     if cover > 0 and road.any():
-        refl = dirs_w[road] - 2 * np.sum(dirs_w[road] * hits.normal[road], 1, keepdims=True) * hits.normal[road]
-        fres = effects.fresnel_reflectance(np.abs(np.sum(dirs_w[road] * hits.normal[road], 1)))[:, None]
+        d_road, n_road = dirs_w[road], hits.normal[road]
+        dot = np.sum(d_road * n_road, 1, keepdims=True)
+        refl = d_road - 2 * dot * n_road
+        fres = effects.fresnel_reflectance(np.abs(dot[:, 0]))[:, None]
         col[road] = col[road] * (1 - 0.45 * cover) + cover * np.clip(fres * 1.5, 0, 1) * sky_colour(refl, p, phase)
     col[~hit] = sky_colour(dirs_w[~hit], p, phase)
     haze = np.exp(-haze_beta(p) * np.where(hit, t, SKY_HAZE_DISTANCE))[:, None]
@@ -163,7 +165,9 @@ def light_points(vehicles) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 def add_light_glows(img: np.ndarray, scene: RayScene, lidar2img: np.ndarray, pose, cam_w: np.ndarray,
                     mount_height: float, strength: float, haze_beta: float) -> np.ndarray:
-    """Add visible, unoccluded head/tail lights as small Gaussian glows to a float image (H, W, 3)."""
+    """Add visible, unoccluded head/tail lights as small Gaussian glows to a uint8 image (H, W, 3), in place.
+
+    The glows are summed in linear [0, 1] floats over the region they cover, then rounded back."""
     pos, face, col = light_points(scene.vehicles)
     if strength <= 0 or len(pos) == 0:
         return img
@@ -176,16 +180,24 @@ def add_light_glows(img: np.ndarray, scene: RayScene, lidar2img: np.ndarray, pos
     uvw = np.c_[local, np.ones(len(local))] @ np.asarray(lidar2img, dtype=np.float64).T
     ok = facing & free & (uvw[:, 2] > 0.5)
     h, w = img.shape[:2]
+    patches = []
     for (u, v, z), d, c in zip(uvw[ok, :3], dist[ok], col[ok]):
         u, v = u / z, v / z
         sigma = max(1.0, 2.0 * 721.0 * 0.12 / d)
         r = int(3 * sigma) + 1
         x0, x1, y0, y1 = max(int(u) - r, 0), min(int(u) + r + 1, w), max(int(v) - r, 0), min(int(v) + r + 1, h)
-        if x0 >= x1 or y0 >= y1:
-            continue
+        if x0 < x1 and y0 < y1:
+            patches.append((x0, x1, y0, y1, u, v, sigma, strength * math.exp(-haze_beta * d), c))
+    if not patches:
+        return img
+    bx0, by0 = min(p[0] for p in patches), min(p[2] for p in patches)
+    bx1, by1 = max(p[1] for p in patches), max(p[3] for p in patches)
+    region = img[by0:by1, bx0:bx1].astype(np.float64) / 255.0
+    for x0, x1, y0, y1, u, v, sigma, gain, c in patches:
         yy, xx = np.mgrid[y0:y1, x0:x1]
         g = np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * sigma ** 2))
-        img[y0:y1, x0:x1] += strength * math.exp(-haze_beta * d) * g[..., None] * c
+        region[y0 - by0:y1 - by0, x0 - bx0:x1 - bx0] += gain * g[..., None] * c
+    img[by0:by1, bx0:bx1] = (np.clip(region, 0, 1) * 255 + 0.5).astype(np.uint8)
     return img
 
 
@@ -208,8 +220,7 @@ def render(scene: RayScene, lidar2img: np.ndarray, pose, mount_height: float, p:
     night = time_of_day(p) == "Night"
     strength = 1.0 if night else (0.4 if p.precipitation > 0 else 0.0)
     if strength > 0:
-        glow = add_light_glows(np.asarray(img, dtype=np.float64) / 255.0, scene, lidar2img, pose, cam_w,
-                               mount_height, strength, haze_beta(p))
-        img = Image.fromarray((np.clip(glow, 0, 1) * 255 + 0.5).astype(np.uint8), "RGB")
+        glow = add_light_glows(np.array(img), scene, lidar2img, pose, cam_w, mount_height, strength, haze_beta(p))
+        img = Image.fromarray(glow, "RGB")
     img = _streaks(img, rain_rate_mmh(p), night, rng)
     return np.asarray(img)

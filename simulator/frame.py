@@ -10,13 +10,13 @@ that a weather-blind sensor gives the same scan in every weather, the rest from 
 """
 from __future__ import annotations
 
-import io
 import math
+import struct
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from harness import kitti
 from simulator.camera import render
@@ -96,11 +96,26 @@ def _num(v: float) -> float | None:
     return None if v is None or (isinstance(v, float) and math.isnan(v)) else round(float(v), 4)
 
 
+def _png_chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
 def encode_png(rgb: np.ndarray) -> bytes:
-    """PNG bytes of an (H, W, 3) uint8 image; fixed settings, no metadata (zlib level 1 for speed)."""
-    buf = io.BytesIO()
-    Image.fromarray(rgb, "RGB").save(buf, format="PNG", compress_level=1)
-    return buf.getvalue()
+    """PNG bytes of an (H, W, 3) uint8 image: 8-bit RGB, every row with the Up filter, zlib level 1,
+    no metadata. (Pillow tries all five filters on every row, which costs more than the compression;
+    the rendered images are smooth vertically, so Up alone compresses better and twice as fast.)"""
+    rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+    if rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise ValueError(f"encode_png: expected an (H, W, 3) image, got shape {rgb.shape}")
+    h, w, _ = rgb.shape
+    rows = np.empty((h, 1 + 3 * w), np.uint8)
+    rows[:, 0] = 2  # filter type Up: byte minus the byte above (mod 256)
+    flat = rgb.reshape(h, 3 * w)
+    rows[0, 1:] = flat[0]
+    np.subtract(flat[1:], flat[:-1], out=rows[1:, 1:])
+    header = struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0)  # 8 bit, RGB, deflate, adaptive filtering, no interlace
+    return (b"\x89PNG\r\n\x1a\n" + _png_chunk(b"IHDR", header)
+            + _png_chunk(b"IDAT", zlib.compress(rows.tobytes(), 1)) + _png_chunk(b"IEND", b""))
 
 
 def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:

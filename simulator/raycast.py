@@ -47,16 +47,23 @@ def first_hit_distance(triangles: np.ndarray, origins: np.ndarray, dirs: np.ndar
     return np.where(res["primID"] >= 0, res["tfar"].astype(np.float64), np.inf)
 
 
+def rays_near_spheres(origins: np.ndarray, dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """(N,) bool: the ray from origins (3,) or (N, 3) along unit dirs (N, 3) passes within a sphere (K, 3), (K,)."""
+    origins = np.asarray(origins, dtype=np.float64)
+    return _near_spheres(origins.reshape(-1, 3), np.asarray(dirs, dtype=np.float64), centres, radii)
+
+
 @numba.njit(cache=True)
-def rays_near_spheres(origin: np.ndarray, dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """(N,) bool: the ray from `origin` along unit dirs (N, 3) passes within a sphere (K, 3), (K,)."""
+def _near_spheres(origins: np.ndarray, dirs: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> np.ndarray:
     n, k = dirs.shape[0], centres.shape[0]
+    shared = origins.shape[0] == 1
     out = np.zeros(n, dtype=np.bool_)
     for i in range(n):
+        o = 0 if shared else i
         for j in range(k):
-            cx = centres[j, 0] - origin[0]
-            cy = centres[j, 1] - origin[1]
-            cz = centres[j, 2] - origin[2]
+            cx = centres[j, 0] - origins[o, 0]
+            cy = centres[j, 1] - origins[o, 1]
+            cz = centres[j, 2] - origins[o, 2]
             along = cx * dirs[i, 0] + cy * dirs[i, 1] + cz * dirs[i, 2]
             if along < -radii[j]:
                 continue
@@ -118,10 +125,20 @@ class RayScene:
         self.dyn_actor = np.concatenate(actors).astype(np.int64)
 
     def _candidates(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """Rays that may hit a vehicle (bounding spheres); all rays when origins differ."""
-        if origin.ndim != 1:
-            return np.ones(len(dirs), bool)
-        return rays_near_spheres(origin.astype(np.float64), dirs.astype(np.float64, copy=False), *self.spheres)
+        """Rays that may hit a vehicle (bounding spheres)."""
+        return rays_near_spheres(origin, dirs, *self.spheres)
+
+    def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+        """(N,) bool: the ray (origins (N, 3) or (3,), unit dirs (N, 3)) hits anything (Embree any-hit)."""
+        origin = np.asarray(origins, dtype=np.float64)
+        origins32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
+        dirs32 = np.ascontiguousarray(dirs, dtype=np.float32)
+        out = self._static.run(origins32, dirs32, query="OCCLUDED") >= 0
+        if self._dynamic is not None:
+            near = np.flatnonzero(~out & self._candidates(origin, dirs))
+            if len(near):
+                out[near] = self._dynamic.run(origins32[near], dirs32[near], query="OCCLUDED") >= 0
+        return out
 
     def cast_parts(self, origins32: np.ndarray, dirs32: np.ndarray, near: np.ndarray,
                    max_t: float = 1e37) -> tuple[dict, dict]:

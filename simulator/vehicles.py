@@ -143,9 +143,17 @@ class Vehicle:
         return self.dims[2] / 2
 
 
+@lru_cache(maxsize=256)
+def _mesh(body: str, dims: tuple[float, float, float], paint: str) -> tuple[np.ndarray, np.ndarray]:
+    """vehicle_mesh of a vehicle seen before (a SOTIF run shows the same vehicles every frame), read-only."""
+    tris, mats = vehicle_mesh(body, np.asarray(dims), paint)
+    tris.flags.writeable = mats.flags.writeable = False
+    return tris, mats
+
+
 def world_triangles(v: Vehicle) -> tuple[np.ndarray, np.ndarray]:
-    """World-frame triangles and material ids of one vehicle."""
-    tris, mats = vehicle_mesh(v.body, np.asarray(v.dims), v.paint)
+    """World-frame triangles and (read-only) material ids of one vehicle."""
+    tris, mats = _mesh(v.body, tuple(float(d) for d in v.dims), v.paint)
     r = rot_z(np.array(v.heading))
     return tris @ r.T + np.array([v.x, v.y, v.z]), mats
 

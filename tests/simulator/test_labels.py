@@ -100,6 +100,29 @@ def test_sphere_culling_matches_brute_force():
     perp2 = (rel ** 2).sum(1)[None] - along ** 2
     ref = ((along >= -r) & (perp2 <= r ** 2)).any(1)
     np.testing.assert_array_equal(rays_near_spheres(o, d, c, r), ref)
+    origins = rng.normal(size=(3000, 3)) * 5  # one origin per ray
+    rel = c[None] - origins[:, None]  # (N, K, 3)
+    along = np.einsum("nkc,nc->nk", rel, d)
+    ref = ((along >= -r) & ((rel ** 2).sum(2) - along ** 2 <= r ** 2)).any(1)
+    np.testing.assert_array_equal(rays_near_spheres(origins, d, c, r), ref)
+    assert 50 < ref.sum() < 2950
+
+
+def test_occluded_matches_first_hits(highway_scene):
+    pose = _pose()
+    rng = np.random.default_rng(6)
+    highway_scene.set_vehicles([_veh(pose, 12, 0), _veh(pose, 25, -3.5, "truck", (11.0, 2.55, 3.8))])
+    n = 20000
+    c, s = np.cos(pose.yaw), np.sin(pose.yaw)
+    fwd, side = rng.uniform(-5, 60, n), rng.uniform(-8, 8, n)
+    origins = np.c_[pose.x + c * fwd - s * side, pose.y + s * fwd + c * side, rng.uniform(0.05, 3, n)]
+    d = rng.normal(size=(n, 3))
+    d[:, 2] = np.abs(d[:, 2]) * 0.5
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    ref = np.isfinite(highway_scene.cast(origins, d).t)
+    np.testing.assert_array_equal(highway_scene.occluded(origins, d), ref)
+    assert 0.1 < ref.mean() < 0.9
+    assert (highway_scene.cast(origins, d).actor >= 0).sum() > 100
 
 
 def test_unit_normals_facing_matches_numpy():
