@@ -28,15 +28,6 @@ from simulator.weather import WEATHER_PRESETS
 from simulator.world import build_world
 
 
-def _median_time(fn, repeats: int, clock=time.perf_counter) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = clock()
-        fn()
-        times.append(clock() - t0)
-    return float(np.median(times))
-
-
 def bench_rays(repeats: int, weathers: list[str]) -> None:
     """Median wall and CPU time per scan: raw embreex on one merged BVH against scan() per weather."""
     road = RoadConfig()
@@ -57,10 +48,17 @@ def bench_rays(repeats: int, weathers: list[str]) -> None:
         runs[name] = lambda w=WEATHER_PRESETS[name], rng=rng: scan(scene, spec, state.pose, w, state.vehicles, rng)
     print(f"rays per scan: {n} ({len(spec.elevations_deg)} channels x {spec.n_azimuth} azimuths), "
           f"median of {repeats}, load average {_load()}")
-    wall, cpu = {}, {}
+    samples = {name: ([], []) for name in runs}
     for name, fn in runs.items():
         fn()
-        wall[name], cpu[name] = _median_time(fn, repeats), _median_time(fn, repeats, time.process_time)
+    for _ in range(repeats):  # interleaved rounds, so that load changes hit every variant alike
+        for name, fn in runs.items():
+            w0, c0 = time.perf_counter(), time.process_time()
+            fn()
+            samples[name][0].append(time.perf_counter() - w0)
+            samples[name][1].append(time.process_time() - c0)
+    wall = {name: float(np.median(w)) for name, (w, _) in samples.items()}
+    cpu = {name: float(np.median(c)) for name, (_, c) in samples.items()}
     for name in runs:
         print(f"  {name:28s} {n / wall[name] / 1e6:5.2f} M rays/s ({wall[name] * 1e3:5.1f} ms wall, "
               f"{cpu[name] * 1e3:5.1f} ms CPU) = {100 * cpu['raw'] / cpu[name]:3.0f} % of raw rays/s by CPU time, "

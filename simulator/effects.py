@@ -181,19 +181,19 @@ def spray_cloud(centres: np.ndarray, headings: np.ndarray, dims: np.ndarray, spe
     Count per vehicle ~ Poisson(density * cover * speed[m/s] * width); uniform in a wedge
     up to 4 m long and 1.2 m high behind the rear axle, widening with distance.
     """
-    pts = []
-    for c, yaw, (l, w, _h), v in zip(centres, headings, dims, speeds):
-        n = rng.poisson(density * cover * max(v, 0.0) * w)
-        if n == 0:
-            continue
-        back = rng.uniform(0.0, 4.0, n)
-        lat = rng.uniform(-0.5, 0.5, n) * (w + 0.3 * back)
-        up = rng.uniform(0.05, 0.3 + 0.25 * back, n)
-        fx, fy = math.cos(yaw), math.sin(yaw)
-        x = c[0] - fx * (l / 2 + back) - fy * lat
-        y = c[1] - fy * (l / 2 + back) + fx * lat
-        pts.append(np.stack([x, y, np.full(n, c[2]) + up], 1))
-    return np.concatenate(pts) if pts else np.zeros((0, 3))
+    dims = np.asarray(dims, dtype=np.float64).reshape(-1, 3)
+    counts = rng.poisson(density * cover * np.maximum(np.asarray(speeds, dtype=np.float64), 0.0) * dims[:, 1])
+    k = np.repeat(np.arange(len(counts)), counts)  # vehicle of each cluster
+    if len(k) == 0:
+        return np.zeros((0, 3))
+    length, width = dims[k, 0], dims[k, 1]
+    back = rng.uniform(0.0, 4.0, len(k))
+    lat = rng.uniform(-0.5, 0.5, len(k)) * (width + 0.3 * back)
+    up = rng.uniform(0.05, 0.3 + 0.25 * back)
+    fx, fy = np.cos(headings)[k], np.sin(headings)[k]
+    x = centres[k, 0] - fx * (length / 2 + back) - fy * lat
+    y = centres[k, 1] - fy * (length / 2 + back) + fx * lat
+    return np.stack([x, y, centres[k, 2] + up], 1)
 
 
 def carla_intensity(d: np.ndarray) -> np.ndarray:

@@ -111,20 +111,18 @@ def rotate_yaw(v: np.ndarray, yaw: float) -> np.ndarray:
 
 @numba.njit(cache=True)
 def world_rays(dirs: np.ndarray, yaw: float, origin: np.ndarray):
-    """Pattern rays in the world: dirs rotated by yaw (float64 and float32) and float32 origins (N, 3)."""
+    """Pattern rays in the world as Embree takes them: float32 dirs rotated by yaw, float32 origins (N, 3)."""
     c, s = np.cos(yaw), np.sin(yaw)
     n = dirs.shape[0]
-    wd = np.empty((n, 3))
     wd32 = np.empty((n, 3), np.float32)
     o32 = np.empty((n, 3), np.float32)
     ox, oy, oz = np.float32(origin[0]), np.float32(origin[1]), np.float32(origin[2])
     for i in range(n):
-        wd[i, 0] = c * dirs[i, 0] - s * dirs[i, 1]
-        wd[i, 1] = s * dirs[i, 0] + c * dirs[i, 1]
-        wd[i, 2] = dirs[i, 2]
-        wd32[i, 0], wd32[i, 1], wd32[i, 2] = wd[i, 0], wd[i, 1], wd[i, 2]
+        wd32[i, 0] = c * dirs[i, 0] - s * dirs[i, 1]
+        wd32[i, 1] = s * dirs[i, 0] + c * dirs[i, 1]
+        wd32[i, 2] = dirs[i, 2]
         o32[i, 0], o32[i, 1], o32[i, 2] = ox, oy, oz
-    return wd, wd32, o32
+    return wd32, o32
 
 
 @numba.njit(cache=True)
@@ -170,14 +168,14 @@ def scan(scene: RayScene, spec: LidarSpec, pose: Pose, weather: WeatherPreset,
     """One scan: (N, 4) float32 x, y, z, intensity in the LiDAR frame (scene vehicles set)."""
     dirs = ray_directions(spec)
     origin = np.array([pose.x, pose.y, spec.mount_height])
-    world_dirs, wd32, o32 = world_rays(dirs, pose.yaw, origin)
+    world_dirs, o32 = world_rays(dirs, pose.yaw, origin)
     if spec.model == "carla":
         r, inten = carla_returns(scene.cast(origin, world_dirs).t, spec, rng)
         return points_from_returns(dirs, r, inten, 0.0, np.inf)
     near = np.zeros(0, np.int64)
     if scene.vehicles:
         near = np.flatnonzero(pattern_rays_near_spheres(origin, world_dirs, spec.n_azimuth, pose.yaw, *scene.spheres))
-    st, dy = scene.cast_parts(o32, wd32, near, spec.max_range)  # farther surfaces return nothing
+    st, dy = scene.cast_parts(o32, world_dirs, near, spec.max_range)  # farther surfaces return nothing
     r, inten = physics_returns(st, near, dy, scene, world_dirs, spec, pose, weather, vehicles, rng)
     return points_from_returns(dirs, r, inten, spec.min_range, spec.max_range)
 
