@@ -17,7 +17,7 @@ import numpy as np
 from harness.boxes import corners_3d, wrap_angle
 from harness.kitti import Calib, Labels
 from simulator.lidar import Pose
-from simulator.raycast import RayScene, first_hit_distance
+from simulator.raycast import RayScene, rays_hit_triangles
 from simulator.vehicles import Vehicle
 
 OCCLUSION_LEVELS = (0.75, 0.4, 0.05)  # visible share thresholds for levels 0, 1, 2
@@ -83,7 +83,7 @@ def visible_share(scene: RayScene, k: int, bbox: np.ndarray, calib: Calib, pose:
     rot = pose.rotation()
     dw = d @ rot.T
     cw = rot @ cam + np.array([pose.x, pose.y, mount_height])
-    own = np.isfinite(first_hit_distance(scene.vehicle_triangles[k], np.broadcast_to(cw, dw.shape), dw))
+    own = rays_hit_triangles(cw, dw, scene.vehicle_triangles[k])
     if not own.any():
         return 0.0
     hits = scene.cast(cw, dw)

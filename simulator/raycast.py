@@ -75,6 +75,39 @@ def _near_spheres(origins: np.ndarray, dirs: np.ndarray, centres: np.ndarray, ra
 
 
 @numba.njit(cache=True)
+def rays_hit_triangles(origin: np.ndarray, dirs: np.ndarray, tris: np.ndarray) -> np.ndarray:
+    """(N,) bool: the ray from origin (3,) along dirs (N, 3) hits one of a few triangles (T, 3, 3) at t >= 0.
+
+    Brute-force Moller-Trumbore; for a handful of rays against one small mesh this is cheaper
+    than building an Embree scene."""
+    n, m = dirs.shape[0], tris.shape[0]
+    out = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        dx, dy, dz = dirs[i, 0], dirs[i, 1], dirs[i, 2]
+        for k in range(m):
+            ax, ay, az = tris[k, 0, 0], tris[k, 0, 1], tris[k, 0, 2]
+            e1x, e1y, e1z = tris[k, 1, 0] - ax, tris[k, 1, 1] - ay, tris[k, 1, 2] - az
+            e2x, e2y, e2z = tris[k, 2, 0] - ax, tris[k, 2, 1] - ay, tris[k, 2, 2] - az
+            px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+            det = e1x * px + e1y * py + e1z * pz
+            if det == 0.0:
+                continue
+            inv = 1.0 / det
+            sx, sy, sz = origin[0] - ax, origin[1] - ay, origin[2] - az
+            u = (sx * px + sy * py + sz * pz) * inv
+            if u < 0.0 or u > 1.0:
+                continue
+            qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+            v = (dx * qx + dy * qy + dz * qz) * inv
+            if v < 0.0 or u + v > 1.0:
+                continue
+            if (e2x * qx + e2y * qy + e2z * qz) * inv >= 0.0:
+                out[i] = True
+                break
+    return out
+
+
+@numba.njit(cache=True)
 def unit_normals_facing(ng: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """(N, 3) unit normals turned against the ray directions (zero where ng is zero)."""
     out = np.zeros((ng.shape[0], 3))

@@ -162,3 +162,20 @@ def test_merged_hits_match_brute_force_nearest_triangle():
     np.testing.assert_array_equal(hits.actor, ref_actor)
     assert (hits.actor >= 0).sum() > 50
     assert np.allclose(np.linalg.norm(hits.normal[np.isfinite(hits.t)], axis=1), 1.0, atol=1e-5)
+
+
+def test_brute_force_triangle_hits_match_embree():
+    from simulator.raycast import first_hit_distance, rays_hit_triangles
+    from simulator.vehicles import world_triangles
+
+    rng = np.random.default_rng(7)
+    for body, dims in (("sedan", (4.75, 1.83, 1.45)), ("truck", (11.0, 2.55, 3.8))):
+        car = Vehicle(body, dims, "red", 20.0, 3.0, rng.uniform(-3, 3), 20.0)
+        tris = world_triangles(car)[0]
+        origin = np.array([0.0, 0.0, 1.7])
+        d = np.array([20.0, 3.0, 0.7]) + rng.normal(size=(3000, 3)) * [1.0, 3.0, 1.0] - origin
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        ref = np.isfinite(first_hit_distance(tris, np.broadcast_to(origin, d.shape), d))
+        np.testing.assert_array_equal(rays_hit_triangles(origin, d, tris), ref)
+        assert 0.2 < ref.mean() < 0.9
+        assert not rays_hit_triangles(origin, -d, tris).any()  # behind the origin
