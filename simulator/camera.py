@@ -24,6 +24,7 @@ from simulator.weather import WeatherPreset, fog_extinction, rain_rate_mmh, road
 SUN_AZIMUTH = math.radians(150.0)  # world frame, CARLA's -1 means "unset"
 SKY_HAZE_DISTANCE = 200.0  # m of haze in front of the sky
 HEADLIGHT_RGB = np.array([1.0, 0.95, 0.8])
+EMISSIVE = (EMISSION > 0).any(1)  # per material id
 TAILLIGHT_RGB = np.array([1.0, 0.08, 0.04])
 
 
@@ -107,7 +108,8 @@ def shade(hits, dirs_w: np.ndarray, lit: np.ndarray, ego_fwd: np.ndarray, p: Wea
     lam = np.clip(hits.normal @ sun_direction(p), 0.0, None) * lit
     col = alb * (amb + sun * lam)[:, None]
     night = time_of_day(p) == "Night"
-    col += EMISSION[hits.material] * (1.0 if night else 0.12)
+    glowing = np.flatnonzero(EMISSIVE[hits.material])  # head/tail light surfaces only
+    col[glowing] += EMISSION[hits.material[glowing]] * (1.0 if night else 0.12)
     if night:  # ego headlights: cone around the driving direction, inverse-square fall-off
         cosang = dirs_w @ ego_fwd
         beam = np.clip((cosang - 0.93) / 0.07, 0, 1) * 60.0 / (10.0 + t ** 2)
