@@ -98,11 +98,14 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
 
 
 def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, train_hash: str) -> dict:
-    from harness.train import train
+    from harness.train import train, train_config
     from models.export import export_checkpoint
+    from models.zoo import config
     ckpt_dir = run_dir / "models" / name
     ckpt = ckpt_dir / "checkpoint.pt"
+    schedule = asdict(train_config(name, cfg.model_profile))
     tinfo = stages.run(f"train_{name}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
+                                          "schedule": schedule, "model_config": asdict(config(name, cfg.model_profile)),
                                           "data": train_hash, "seed": cfg.seed},
                        lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt_dir,
                                                         profile=cfg.model_profile, epochs=cfg.epochs,

@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import torch
 
 from harness.dataset import write_synthetic_dataset
@@ -23,3 +24,15 @@ def test_train_writes_checkpoint_and_resumes(tmp_path, capsys):
     again = train("pointpillars", data, tmp_path / "other", profile="tiny", epochs=2, seed=0, progress=False)
     for k, v in torch.load(again, weights_only=False)["state_dict"].items():
         assert torch.allclose(v.float(), state["state_dict"][k].float(), atol=1e-5)  # same seed, same run
+
+
+def test_compact_schedule_is_per_model_and_other_profiles_are_shared():
+    from harness.train import COMPACT_EPOCHS, TRAIN_CONFIGS, train_config
+    from models.zoo import MODEL_NAMES
+    assert set(COMPACT_EPOCHS) == set(MODEL_NAMES)
+    for name in MODEL_NAMES:
+        assert train_config(name, "compact").epochs == COMPACT_EPOCHS[name]
+        assert train_config(name, "compact").lr == TRAIN_CONFIGS["compact"].lr
+        assert train_config(name, "tiny") == TRAIN_CONFIGS["tiny"]
+    with pytest.raises(ValueError, match="unknown profile 'huge'"):
+        train_config("second", "huge")
