@@ -247,16 +247,19 @@ def hard_returns(t, normal, dirs, material, refl_table, ground_table, cover, a_r
 
 @numba.njit(cache=True)
 def first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs, refl_table, ground_table,
-                  cover, a_rain, a_fog, fog_start, min_power, min_range, max_range):
-    """raycast.merge_hits followed by hard_returns in one pass over Embree's raw output.
+                  cover, a_rain, a_fog, fog_start, min_power, min_range, max_range, noise, sigma0, goodin_k):
+    """raycast.merge_hits, hard_returns and the range noise in one pass over Embree's raw output.
 
     Static hits (t_s, prim_s, ng_s) of all N rays, vehicle hits (t_d, prim_d, ng_d) of the rays
-    `near` (sorted); returns range before noise (N,) (NaN = lost), intensity (N,), number of returns.
+    `near` (sorted); a return at range r moves by noise[i] * hypot(sigma0, goodin_k r).
+    Returns ranges (N,) (NaN = lost), intensities (N,) and the ranges with max_range in place
+    of NaN (the path the soft targets can use).
     """
     n = t_s.shape[0]
     r_out = np.empty(n)
     i_out = np.empty(n)
-    j, count = 0, 0
+    far = np.empty(n)
+    j = 0
     for i in range(n):
         t, m = np.inf, -1
         nx, ny, nz = 0.0, 0.0, 0.0
@@ -268,32 +271,19 @@ def first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs
                 t, m = float(t_d[j]), mat_d[prim_d[j]]
                 nx, ny, nz = float(ng_d[j, 0]), float(ng_d[j, 1]), float(ng_d[j, 2])
             j += 1
-        if m < 0:
-            r_out[i], i_out[i] = np.nan, 0.0
-            continue
-        norm = np.sqrt(nx * nx + ny * ny + nz * nz)
-        cos_i = abs(nx * dirs[i, 0] + ny * dirs[i, 1] + nz * dirs[i, 2]) / norm if norm > 0 else 0.0
-        r_out[i], i_out[i] = surface_return(t, cos_i, refl_table[m], ground_table[m], cover, a_rain, a_fog,
-                                            fog_start, min_power, min_range, max_range)
-        if r_out[i] == r_out[i]:
-            count += 1
-    return r_out, i_out, count
-
-
-@numba.njit(cache=True)
-def add_range_noise(r, noise, sigma0, goodin_k, far):
-    """Adds noise[k] * hypot(sigma0, goodin_k r) to the k-th finite range (in place); returns the
-    ranges with `far` in place of NaN (the path length the soft targets can use)."""
-    out = np.empty(r.shape[0])
-    k = 0
-    for i in range(r.shape[0]):
-        if r[i] == r[i]:
-            r[i] += noise[k] * np.sqrt(sigma0 * sigma0 + (goodin_k * r[i]) ** 2)
-            k += 1
-            out[i] = r[i]
+        r, inten = np.nan, 0.0
+        if m >= 0:
+            norm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            cos_i = abs(nx * dirs[i, 0] + ny * dirs[i, 1] + nz * dirs[i, 2]) / norm if norm > 0 else 0.0
+            r, inten = surface_return(t, cos_i, refl_table[m], ground_table[m], cover, a_rain, a_fog,
+                                      fog_start, min_power, min_range, max_range)
+        if r == r:
+            r += noise[i] * np.sqrt(sigma0 * sigma0 + (goodin_k * r) ** 2)
+            far[i] = r
         else:
-            out[i] = far
-    return out
+            far[i] = max_range
+        r_out[i], i_out[i] = r, inten
+    return r_out, i_out, far
 
 
 def nearest_soft(sources: list[tuple[np.ndarray, np.ndarray, float]]):
@@ -315,12 +305,11 @@ def physics_returns(st: dict, near: np.ndarray, dy: dict, scene: RayScene, world
     cover = road_water_cover(weather)
     rain = rain_rate_mmh(weather)
     a_rain, a_fog = effects.marshall_palmer_extinction(rain), fog_extinction(weather)
-    r_out, i_out, count = first_returns(
+    goodin_k = float(effects.goodin_range_sigma(1.0, rain, spec.rain_range_noise))
+    r_out, i_out, hard_or_far = first_returns(
         st["tfar"], st["primID"], st["Ng"], scene.static_material, near, dy["tfar"], dy["primID"], dy["Ng"],
         scene.dyn_material, world_dirs, REFLECTANCE64, GROUND, cover, a_rain, a_fog, weather.fog_distance,
-        spec.min_power, spec.min_range, spec.max_range)
-    goodin_k = float(effects.goodin_range_sigma(1.0, rain, spec.rain_range_noise))
-    hard_or_far = add_range_noise(r_out, rng.standard_normal(count), spec.range_noise_m, goodin_k, spec.max_range)
+        spec.min_power, spec.min_range, spec.max_range, rng.standard_normal(n), spec.range_noise_m, goodin_k)
     sources = []
     if a_rain > 0:
         sources.append((*effects.rain_backscatter_sparse(hard_or_far, a_rain, rng), 0.02))

@@ -36,7 +36,8 @@ def _scene(triangles: np.ndarray) -> rtcs.EmbreeScene:
     return scene
 
 
-def _run(scene: rtcs.EmbreeScene, origins: np.ndarray, dirs: np.ndarray, max_t: float = 1e37) -> dict:
+def _run(scene: rtcs.EmbreeScene, origins: np.ndarray, dirs: np.ndarray, max_t: float | np.ndarray = 1e37) -> dict:
+    """First hits up to max_t (a number, or per ray: a float32 array that Embree overwrites)."""
     return scene.run(np.ascontiguousarray(origins, dtype=np.float32),
                      np.ascontiguousarray(dirs, dtype=np.float32), dists=max_t, output=1)
 
@@ -181,7 +182,8 @@ class RayScene:
         if self._dynamic is None or len(near) == 0:
             return st, {"tfar": np.zeros(0, np.float32), "primID": np.zeros(0, np.int32),
                         "Ng": np.zeros((0, 3), np.float32)}
-        return st, _run(self._dynamic, origins32[near], dirs32[near], max_t)
+        # a vehicle counts only when nearer than the static hit: stop each ray there
+        return st, _run(self._dynamic, origins32[near], dirs32[near], st["tfar"][near])
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> Hits:
         """First hits of rays (origins (N, 3) or (3,), unit dirs (N, 3)), world frame."""
