@@ -7,6 +7,7 @@ from shapely.geometry import Polygon
 
 from harness import gt_database as gtdb
 from harness import kitti
+from harness.boxes import corners_3d, points_in_boxes
 from harness.dataset import KittiDataset, synthetic_sample, write_synthetic_dataset
 from harness.gt_database import GtSamplingConfig, build_database, load_or_build, sample_objects
 
@@ -172,3 +173,14 @@ def test_cache_is_reused_and_rebuilt_when_data_change(tmp_path, monkeypatch):
     assert len(load_or_build(root, cache)) == 7
     with pytest.raises(ValueError, match="gt_database_train.npz"):
         gtdb.load(path, "another key")
+
+
+def test_in_any_box_matches_points_in_boxes():
+    rng = np.random.default_rng(5)
+    for k in (0, 1, 7):
+        boxes = np.c_[rng.uniform(-5, 5, (k, 3)), rng.uniform(0.5, 4, (k, 3)), rng.uniform(-np.pi, np.pi, k)]
+        points = rng.uniform(-7, 7, (3000, 4)).astype(np.float32)
+        points[:50, :3] = boxes[:1, :3] if k else 0  # centres, and corners exactly on the boundary below
+        if k:
+            points[50:58, :3] = corners_3d(boxes[:1])[0]
+        np.testing.assert_array_equal(gtdb.in_any_box(points, boxes), points_in_boxes(points, boxes).any(axis=1))
