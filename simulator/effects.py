@@ -105,8 +105,8 @@ def thinned_bernoulli(n: int, p_max: float, p_of, rng: np.random.Generator) -> n
     return cand[rng.random(len(cand)) * p_max < p_of(cand)]
 
 
-def rain_backscatter_sparse(r_hit: np.ndarray, alpha_rain: float, rng: np.random.Generator,
-                            r_min: float = 1.0, r_max: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
+def rain_backscatter(r_hit: np.ndarray, alpha_rain: float, rng: np.random.Generator,
+                     r_min: float = 1.0, r_max: float = 12.0) -> tuple[np.ndarray, np.ndarray]:
     """Raindrop returns as (sorted ray indices, ranges).
 
     Probability 1 - exp(-k alpha L), L = min(r_hit, r_max) - r_min; range density ~ 1/r^2.
@@ -118,8 +118,8 @@ def rain_backscatter_sparse(r_hit: np.ndarray, alpha_rain: float, rng: np.random
     return idx, inverse_square_ranges(rng.random(len(idx)), r_min, np.minimum(r_hit[idx], r_max))
 
 
-def fog_backscatter_sparse(r_hit: np.ndarray, alpha_fog: float, rng: np.random.Generator,
-                           r_min: float = 1.5, r_max: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
+def fog_backscatter(r_hit: np.ndarray, alpha_fog: float, rng: np.random.Generator,
+                    r_min: float = 1.5, r_max: float = 30.0) -> tuple[np.ndarray, np.ndarray]:
     """Fog soft-target returns as (sorted ray indices, ranges).
 
     Back-scatter coefficient beta = 0.046 / MOR with MOR = -ln(0.05) / alpha (Hahner et al.);
@@ -135,43 +135,18 @@ def fog_backscatter_sparse(r_hit: np.ndarray, alpha_fog: float, rng: np.random.G
     return idx, inverse_square_ranges(rng.random(len(idx)), r_min, np.minimum(r_hit[idx], r_max))
 
 
-def dense(n: int, sparse: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """(n,) ranges from (ray indices, ranges), NaN elsewhere."""
-    out = np.full(n, np.nan)
-    out[sparse[0]] = sparse[1]
-    return out
-
-
-def rain_backscatter(r_hit: np.ndarray, alpha_rain: float, rng: np.random.Generator,
-                     r_min: float = 1.0, r_max: float = 12.0) -> np.ndarray:
-    """Range of a raindrop return per ray (NaN where the beam returns from its target)."""
-    return dense(len(r_hit), rain_backscatter_sparse(r_hit, alpha_rain, rng, r_min, r_max))
-
-
-def fog_backscatter(r_hit: np.ndarray, alpha_fog: float, rng: np.random.Generator,
-                    r_min: float = 1.5, r_max: float = 30.0) -> np.ndarray:
-    """Range of a fog soft-target return per ray (NaN where the hard target returns first)."""
-    return dense(len(r_hit), fog_backscatter_sparse(r_hit, alpha_fog, rng, r_min, r_max))
-
-
 def sunlight_probability(sun_altitude_deg: float, cloudiness: float, p0: float = 2e-4) -> float:
     """Per-ray probability of a false return caused by sunlight."""
     sun = max(0.0, math.sin(math.radians(sun_altitude_deg)))
     return p0 * sun * (1.0 - 0.75 * cloudiness / 100.0)
 
 
-def sunlight_noise_sparse(n: int, sun_altitude_deg: float, cloudiness: float, max_range: float,
-                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+def sunlight_noise(n: int, sun_altitude_deg: float, cloudiness: float, max_range: float,
+                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """Sunlight false returns as (sorted ray indices, ranges uniform in [1, max_range])."""
     p = sunlight_probability(sun_altitude_deg, cloudiness)
     idx = thinned_bernoulli(n, p, lambda i: np.full(len(i), p), rng)
     return idx, rng.uniform(1.0, max_range, len(idx))
-
-
-def sunlight_noise(n: int, sun_altitude_deg: float, cloudiness: float, max_range: float,
-                   rng: np.random.Generator) -> np.ndarray:
-    """Range of a sunlight false return per ray (NaN for none), uniform in range."""
-    return dense(n, sunlight_noise_sparse(n, sun_altitude_deg, cloudiness, max_range, rng))
 
 
 def spray_cloud(centres: np.ndarray, headings: np.ndarray, dims: np.ndarray, speeds: np.ndarray,

@@ -312,11 +312,11 @@ def physics_returns(st: dict, near: np.ndarray, dy: dict, scene: RayScene, world
         spec.min_power, spec.min_range, spec.max_range, rng.standard_normal(n), spec.range_noise_m, goodin_k)
     sources = []
     if a_rain > 0:
-        sources.append((*effects.rain_backscatter_sparse(hard_or_far, a_rain, rng), 0.02))
+        sources.append((*effects.rain_backscatter(hard_or_far, a_rain, rng), 0.02))
     if a_fog > 0:
-        sources.append((*effects.fog_backscatter_sparse(hard_or_far, a_fog, rng), 0.03))
-    sources.append((*effects.sunlight_noise_sparse(n, weather.sun_altitude_angle, weather.cloudiness,
-                                                   spec.max_range, rng), 0.01))
+        sources.append((*effects.fog_backscatter(hard_or_far, a_fog, rng), 0.03))
+    sources.append((*effects.sunlight_noise(n, weather.sun_altitude_angle, weather.cloudiness, spec.max_range, rng),
+                    0.01))
     if cover > 0:
         sources.append((*spray_ranges(spec, pose, vehicles, cover, rng), 0.05))
     idx, soft, level = nearest_soft(sources)

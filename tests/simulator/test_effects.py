@@ -53,16 +53,20 @@ def test_backscatter_rate_matches_formula(kind):
     r_hit = rng.uniform(0.5, 60.0, n)
     if kind == "rain":
         alpha = effects.marshall_palmer_extinction(50.0)
-        out = effects.rain_backscatter(r_hit, alpha, rng)
+        idx, r = effects.rain_backscatter(r_hit, alpha, rng)
         p = 1 - np.exp(-effects.BACKSCATTER_K * alpha * np.clip(np.minimum(r_hit, 12.0) - 1.0, 0, None))
+        lo, hi = 1.0, 12.0
     else:
         alpha = 0.03
-        out = effects.fog_backscatter(r_hit, alpha, rng)
+        idx, r = effects.fog_backscatter(r_hit, alpha, rng)
         beta = 0.046 * alpha / -math.log(0.05)
         p = 1 - np.exp(-effects.FOG_BACKSCATTER_K * beta * np.clip(np.minimum(r_hit, 30.0) - 1.5, 0, None))
-    hit = np.isfinite(out)
-    assert abs(hit.sum() - p.sum()) < 5 * math.sqrt(p.sum()) + 1
-    assert (out[hit] <= r_hit[hit] + 1e-9).all()
+        lo, hi = 1.5, 30.0
+    assert abs(len(idx) - p.sum()) < 5 * math.sqrt(p.sum()) + 1
+    assert (np.diff(idx) > 0).all() and (r <= r_hit[idx] + 1e-9).all() and (r >= lo).all() and (r <= hi).all()
+    # ranges follow the 1/r^2 density on [lo, min(r_hit, hi)]: their CDF values are uniform
+    far = np.minimum(r_hit[idx], hi)
+    assert stats.kstest((1 / lo - 1 / r) / (1 / lo - 1 / far), "uniform").pvalue > 0.01
 
 
 def test_carla_dropoff_and_intensity():
@@ -81,8 +85,8 @@ def test_sunlight_probability_scales_with_altitude():
     assert effects.sunlight_probability(90, 0) == pytest.approx(2e-4)
     assert effects.sunlight_probability(30, 100) == pytest.approx(2e-4 * 0.5 * 0.25)
     rng = np.random.default_rng(6)
-    out = effects.sunlight_noise(500000, 90, 0, 120, rng)
-    assert abs(np.isfinite(out).sum() - 100) < 5 * 10
+    idx, r = effects.sunlight_noise(500000, 90, 0, 120, rng)
+    assert abs(len(idx) - 100) < 5 * 10 and (r >= 1).all() and (r <= 120).all()
 
 
 def test_spray_behind_vehicle():
@@ -112,14 +116,21 @@ def test_thinned_bernoulli_hits_each_index_with_its_probability():
     assert len(effects.thinned_bernoulli(n, 0.0, lambda i: p[i], rng)) == 0
 
 
-def test_sparse_effects_equal_their_dense_forms():
-    r_hit = np.random.default_rng(9).uniform(0.5, 60.0, 50000)
-    for sparse, dense, args in ((effects.rain_backscatter_sparse, effects.rain_backscatter, (r_hit, 0.004)),
-                                (effects.fog_backscatter_sparse, effects.fog_backscatter, (r_hit, 0.03))):
-        idx, r = sparse(*args, np.random.default_rng(10))
-        out = dense(*args, np.random.default_rng(10))
-        np.testing.assert_array_equal(np.flatnonzero(np.isfinite(out)), idx)
-        np.testing.assert_array_equal(out[idx], r)
-        assert len(idx) > 20 and (r >= 1.0).all() and (r <= np.minimum(r_hit[idx], 30.0)).all()
-    idx, r = effects.sunlight_noise_sparse(500000, 90, 0, 120, np.random.default_rng(11))
-    assert abs(len(idx) - 100) < 50 and (r >= 1).all() and (r <= 120).all()
+def test_spray_counts_and_wedges_per_vehicle():
+    rng = np.random.default_rng(9)
+    centres = np.array([[0.0, 0.0, 0.0], [50.0, 10.0, 0.0], [-30.0, 4.0, 0.0]])
+    headings, dims = np.array([0.3, -2.0, 3.0]), np.array([[4.5, 1.8, 1.5], [11.0, 2.5, 3.8], [4.0, 1.7, 1.4]])
+    speeds, cover = np.array([30.0, 20.0, 0.0]), 0.8
+    counts, trials = np.zeros(3), 300
+    for _ in range(trials):
+        pts = effects.spray_cloud(centres, headings, dims, speeds, cover, rng)
+        k = np.linalg.norm(pts[:, None, :2] - centres[None, :, :2], axis=2).argmin(1)  # vehicles far apart
+        rel = pts[:, :2] - centres[k, :2]
+        fwd = rel[:, 0] * np.cos(headings[k]) + rel[:, 1] * np.sin(headings[k])
+        lat = -rel[:, 0] * np.sin(headings[k]) + rel[:, 1] * np.cos(headings[k])
+        back = -fwd - dims[k, 0] / 2
+        assert (back >= 0).all() and (back <= 4).all() and (np.abs(lat) <= 0.5 * (dims[k, 1] + 0.3 * back)).all()
+        assert (pts[:, 2] >= 0.05).all() and (pts[:, 2] <= 0.3 + 0.25 * back).all()
+        counts += np.bincount(k, minlength=3)
+    mean = 0.6 * cover * speeds * dims[:, 1]
+    np.testing.assert_array_less(np.abs(counts / trials - mean), 5 * np.sqrt(mean / trials) + 1e-9)
