@@ -123,7 +123,8 @@ def _checkpoint_meta(ckpt: Path) -> dict:
     state = torch.load(ckpt, map_location="cpu", weights_only=False)
     params = sum(int(np.prod(v.shape)) for v in state["state_dict"].values() if hasattr(v, "shape")
                  and v.dtype.is_floating_point)
-    return {"params": params, "epochs": state.get("epoch"), "final_loss": state.get("final_loss")}
+    return {"params": params, "epochs": state.get("epoch"), "final_loss": state.get("final_loss"),
+            "val_ap": state.get("val_ap")}
 
 
 def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str) -> dict:
@@ -174,7 +175,8 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
     return {"architecture": info.architecture, "two_stage": info.two_stage, "uses_camera": info.uses_camera,
             "onnx": f"models/{name}.onnx", "size_mb": onnx_path.stat().st_size / 2**20, "params": ck["params"],
             "op_histogram": info.op_histogram,
-            "train": {"seconds": tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"]},
+            "train": {"seconds": tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"],
+                      "val_ap": ck["val_ap"]},
             "runtime": {"onnxruntime": ort, **{k: v for k, v in probe.items() if k != "seconds"}},
             "results": f"results/{name}.json",
             "sotif": sotif_view(data, run_dir / "predictions" / name, split="test",

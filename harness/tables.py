@@ -301,7 +301,9 @@ def stage_table(summary: dict) -> pd.DataFrame:
 
 
 def overview_table(run: Run, t: dict) -> pd.DataFrame:
-    """One row per model: what it is and its key numbers (overall headline AP, mRR, SOTIF passes, latency)."""
+    """One row per model: what it is, its training (epochs, minutes, AP40 3D moderate on the held-out
+    dry frames of the training generator) and its key numbers on the SOTIF set (headline AP, mRR,
+    SOTIF passes, latency)."""
     rob = t["robustness"].set_index("model") if not t["robustness"].empty else pd.DataFrame()
     rt = t["runtime"].set_index("model") if not t["runtime"].empty else pd.DataFrame()
     so = t["sotif"]
@@ -311,6 +313,9 @@ def overview_table(run: Run, t: dict) -> pd.DataFrame:
         judged = so[(so["model"] == name) & (so["verdict"] != "n/a")] if not so.empty else so
         rows.append({"model": name, "architecture": m.get("architecture"),
                      "stages": "two" if m.get("two_stage") else "one", "camera": bool(m.get("uses_camera")),
+                     "epochs": _get(m, "train", "epochs", default=None),
+                     "train min": _get(m, "train", "seconds") / 60,
+                     "val AP3D mod": _get(m, "train", "val_ap", "3d_moderate"),
                      "AP3D": _get(res, "headline", "3d", "0.7"), "AP BEV": _get(res, "headline", "bev", "0.7"),
                      "mRR": rob["mRR"].get(name, np.nan) if len(rob) else np.nan,
                      "SOTIF pass": f"{int((judged['verdict'] == 'pass').sum())}/{len(judged)}" if len(judged) else None,

@@ -167,17 +167,20 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
         done = _resume(path, net, optimizer, scheduler, ident)
         bar = tqdm(total=steps, initial=done * (steps // epochs), desc=f"train {model}/{profile}",
                    disable=not progress, unit="step")
-        start, loss = time.perf_counter(), math.nan
+        start, loss, state = time.perf_counter(), math.nan, None
         for epoch in range(done, epochs):
             loss = _run_epoch(net, ds, optimizer, scheduler, tcfg, seed, epoch, bar, aug, database)
-            _atomic_save({**ident, "config": asdict(cfg), "state_dict": net.state_dict(), "epoch": epoch + 1,
-                          "epochs": epochs, "optimizer": optimizer.state_dict(),
-                          "scheduler": scheduler.state_dict(), "final_loss": loss, "seed": seed,
-                          "train_seconds": time.perf_counter() - start}, path)
+            state = {**ident, "config": asdict(cfg), "state_dict": net.state_dict(), "epoch": epoch + 1,
+                     "epochs": epochs, "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                     "final_loss": loss, "seed": seed, "train_seconds": time.perf_counter() - start}
+            _atomic_save(state, path)
         bar.close()
-        if progress and done < epochs and has_split(data, "val"):
+        if state is not None and has_split(data, "val"):
+            # held-out frames of the training generator, kept with the checkpoint
             ap = validation_ap(net, data)
-            print(f"val AP40 @0.7 ({ap['frames']} frames): 3D moderate {ap['3d_moderate']:.2f}, "
-                  f"BEV moderate {ap['bev_moderate']:.2f}, 3D all-distance {ap['3d_all']:.2f}, "
-                  f"BEV all-distance {ap['bev_all']:.2f}")
+            _atomic_save({**state, "val_ap": ap}, path)
+            if progress:
+                print(f"val AP40 @0.7 ({ap['frames']} frames): 3D moderate {ap['3d_moderate']:.2f}, "
+                      f"BEV moderate {ap['bev_moderate']:.2f}, 3D all-distance {ap['3d_all']:.2f}, "
+                      f"BEV all-distance {ap['bev_all']:.2f}")
     return path
