@@ -90,7 +90,8 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
     frames = cfg.train_frames if preset == "train" else cfg.sotif_frames
     seed = cfg.seed if preset == "sotif" else cfg.seed + 1000
     out = data_dir / preset
-    key = {"preset": preset, "frames": frames, "seed": seed, "lidar": cfg.lidar_model}
+    from simulator.dataset import GENERATOR_VERSION
+    key = {"preset": preset, "frames": frames, "seed": seed, "lidar": cfg.lidar_model, "generator": GENERATOR_VERSION}
     stages.run(f"simulate_{preset}", key, lambda: {"out": str(generate(
         out, preset=preset, frames=frames, seed=seed, workers=cfg.workers, lidar_model=cfg.lidar_model,
         progress=stages.progress))}, outputs=[out / "meta" / "dataset.json"])
