@@ -32,6 +32,7 @@ from models.roi_head import (
     RoITargetConfig,
     RoITargets,
     decode_canonical,
+    nms_in_order,
     refine_loss,
     sample_rois,
 )
@@ -288,7 +289,8 @@ class PointRCNN(Detector):
         scores = torch.sigmoid(seg)  # (n0,)
         top = torch.topk(scores, min(self.cfg.pre_nms, self.cfg.num_points)).indices  # (T,)
         boxes = decode_bins(box[top], pts[top, :3], self.cfg)  # (T, 7)
-        keep = nms_rotated(boxes, scores[top], self.cfg.proposal_nms_iou)  # (K,)
+        # top is in descending score order (ties as TopK returns them): NMS in that order
+        keep = nms_in_order(boxes, self.cfg.proposal_nms_iou)  # (K,)
         slot = torch.cat([keep, keep.new_zeros(self.cfg.rois)])[: self.cfg.rois]  # (R,)
         valid = torch.arange(self.cfg.rois, device=seg.device) < keep.shape[0]  # (R,)
         rois = boxes[slot] * valid[:, None].to(boxes.dtype)

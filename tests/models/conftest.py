@@ -1,6 +1,16 @@
-"""Shared fixtures of the model tests."""
+"""Shared fixtures of the model tests.
+
+Test modules are imported with ``--import-mode=importlib``, so shared helpers reach them as
+fixtures (each returning the helper function) rather than as imports.
+"""
+import numpy as np
 import pytest
 import torch
+
+from harness.types import Sample
+
+CARS = np.array([[10.0, 2.0, -0.95, 4.5, 1.8, 1.6, 0.1], [18.0, -4.0, -0.95, 4.2, 1.7, 1.5, -0.2]],
+                np.float32)  # two cars, LiDAR-frame box rows
 
 
 @pytest.fixture
@@ -12,3 +22,55 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+def _two_car_scene(rng: np.random.Generator, ground: int = 3000, per_car: int = 300) -> Sample:
+    """A ground plane 1.73 m below the sensor and points filling the two ``CARS`` boxes."""
+    floor = np.c_[rng.uniform(0, 25, ground), rng.uniform(-12, 12, ground),
+                  rng.normal(-1.73, 0.02, ground), rng.uniform(0, 1, ground)]
+    parts = [floor]
+    for b in CARS:
+        local = rng.uniform(-0.5, 0.5, (per_car, 3)) * b[3:6]
+        c, s = np.cos(b[6]), np.sin(b[6])
+        xy = local[:, :2] @ np.array([[c, s], [-s, c]]) + b[:2]
+        parts.append(np.c_[xy, local[:, 2] + b[2], rng.uniform(0, 1, per_car)])
+    points = np.concatenate(parts).astype(np.float32)
+    return Sample("000000", points, CARS.copy(), np.array(["Car", "Car"]))
+
+
+def _random_cloud(rng: np.random.Generator, pc_range, n: int) -> np.ndarray:
+    """(n, 4) float32 points uniform over the range (a margin outside it included)."""
+    lo, hi = np.array(pc_range[:3]) - 1.0, np.array(pc_range[3:]) + 1.0
+    return np.c_[rng.uniform(lo, hi, (n, 3)), rng.uniform(0, 1, n)].astype(np.float32)
+
+
+def _train_steps(model: torch.nn.Module, sample: Sample, steps: int) -> tuple[float, float]:
+    """Adam steps on one frame; mean total loss of the first two and of the last two steps."""
+    model.train()
+    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
+    totals = []
+    for _ in range(steps):
+        loss = model.loss([sample])["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        totals.append(float(loss.detach()))
+    return float(np.mean(totals[:2])), float(np.mean(totals[-2:]))
+
+
+@pytest.fixture
+def two_car_scene():
+    """``two_car_scene(rng, ground=3000, per_car=300) -> Sample``: ground plane + two cars."""
+    return _two_car_scene
+
+
+@pytest.fixture(scope="session")
+def random_cloud():
+    """``random_cloud(rng, pc_range, n) -> (n, 4) float32`` uniform over the range + 1 m."""
+    return _random_cloud
+
+
+@pytest.fixture
+def train_steps():
+    """``train_steps(model, sample, steps) -> (first loss, last loss)``: Adam on one frame."""
+    return _train_steps

@@ -7,48 +7,9 @@ import pytest
 import torch
 
 from harness.boxes import points_in_boxes
-from harness.types import Sample
 from models.export import export_onnx, run_onnx
 from models.parta2 import CONFIGS, PartA2, build, part_targets, voxel_centres
 from models.sparse import SparseTensor
-
-CARS = np.array([[10.0, 2.0, -0.95, 4.5, 1.8, 1.6, 0.1], [18.0, -4.0, -0.95, 4.2, 1.7, 1.5, -0.2]],
-                np.float32)
-
-
-def scene(rng: np.random.Generator, ground: int = 3000, per_car: int = 300) -> Sample:
-    """A ground plane 1.73 m below the sensor and points filling two car boxes."""
-    floor = np.c_[rng.uniform(0, 25, ground), rng.uniform(-12, 12, ground),
-                  rng.normal(-1.73, 0.02, ground), rng.uniform(0, 1, ground)]
-    parts = [floor]
-    for b in CARS:
-        local = rng.uniform(-0.5, 0.5, (per_car, 3)) * b[3:6]
-        c, s = np.cos(b[6]), np.sin(b[6])
-        xy = local[:, :2] @ np.array([[c, s], [-s, c]]) + b[:2]
-        parts.append(np.c_[xy, local[:, 2] + b[2], rng.uniform(0, 1, per_car)])
-    points = np.concatenate(parts).astype(np.float32)
-    return Sample("000000", points, CARS.copy(), np.array(["Car", "Car"]))
-
-
-def random_cloud(rng: np.random.Generator, pc_range, n: int) -> np.ndarray:
-    """(n, 4) float32 points uniform over the range (a margin outside it included)."""
-    lo, hi = np.array(pc_range[:3]) - 1.0, np.array(pc_range[3:]) + 1.0
-    return np.c_[rng.uniform(lo, hi, (n, 3)), rng.uniform(0, 1, n)].astype(np.float32)
-
-
-def train_steps(model: torch.nn.Module, sample: Sample, steps: int) -> tuple[float, float]:
-    """Adam steps on one frame; mean total loss of the first two and of the last two steps."""
-    model.train()
-    opt = torch.optim.Adam(model.parameters(), lr=3e-3)
-    totals = []
-    for _ in range(steps):
-        loss = model.loss([sample])["loss"]
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-        totals.append(float(loss.detach()))
-    return float(np.mean(totals[:2])), float(np.mean(totals[-2:]))
-
 
 def test_part_targets_match_reference():
     rng = np.random.default_rng(0)
@@ -84,11 +45,11 @@ def test_voxel_centres_match_reference():
     np.testing.assert_allclose(got, want, atol=1e-5)
 
 
-def test_outputs_and_loss_falls():
+def test_outputs_and_loss_falls(two_car_scene, train_steps):
     torch.manual_seed(0)
     model = build("tiny")
     assert isinstance(model, PartA2) and model.two_stage
-    sample = scene(np.random.default_rng(1))
+    sample = two_car_scene(np.random.default_rng(1))
     first, last = train_steps(model, sample, steps=8)
     assert last < 0.8 * first
     model.eval()
@@ -124,7 +85,7 @@ def test_export_keeps_every_step_in_the_graph(exported):
 
 
 @pytest.mark.parametrize("n", [3000, 7, 0])
-def test_onnx_matches_torch(exported, n):
+def test_onnx_matches_torch(exported, n, random_cloud):
     model, path, _ = exported
     points = random_cloud(np.random.default_rng(n), CONFIGS["tiny"].pc_range, n)
     got = run_onnx(path, points)

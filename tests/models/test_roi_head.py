@@ -6,8 +6,9 @@ import torch
 
 from harness.boxes import corners_3d, iou_3d, iou_bev, wrap_angle
 from models.roi_head import (RefineHead, RoITargetConfig, box_corners, corner_loss,
-                             decode_canonical, encode_canonical, iou_score_target, ranked_topk,
-                             refine_loss, sample_rois, select_ranked)
+                             decode_canonical, encode_canonical, iou_score_target, nms_in_order,
+                             ranked_topk, refine_loss, sample_rois, select_ranked,
+                             suppression_candidates)
 
 
 def random_boxes(rng, k, spread=20.0):
@@ -145,3 +146,36 @@ def test_select_ranked_is_greedy_nms_in_rank_order():
     kept = kept[:30]
     np.testing.assert_allclose(got_boxes.numpy(), boxes[kept], atol=1e-6)
     np.testing.assert_array_equal(got_scores.numpy(), scores[kept])
+
+
+def greedy_nms(boxes: np.ndarray, thresh: float) -> list[int]:
+    """Reference: greedy NMS of boxes given best first, with the reference rotated BEV IoU."""
+    overlaps = iou_bev(boxes, boxes) if len(boxes) else np.zeros((0, 0))
+    kept: list[int] = []
+    for i in range(len(boxes)):
+        if all(overlaps[i, j] <= thresh for j in kept):
+            kept.append(i)
+    return kept
+
+
+def test_nms_in_order_is_greedy_nms():
+    rng = np.random.default_rng(9)
+    for k, spread, thresh in [(150, 10.0, 0.7), (150, 10.0, 0.1), (80, 4.0, 0.3), (40, 200.0, 0.1),
+                              (1, 5.0, 0.5), (0, 5.0, 0.5)]:
+        boxes = random_boxes(rng, k, spread)
+        boxes[:, 3:5] *= rng.uniform(0.3, 2.0, (k, 2))  # slim and wide boxes too
+        got = nms_in_order(torch.from_numpy(boxes), thresh).numpy()
+        np.testing.assert_array_equal(got, greedy_nms(boxes, thresh))
+
+
+def test_suppression_candidates_hold_every_overlapping_pair():
+    rng = np.random.default_rng(10)
+    boxes = random_boxes(rng, 200, 8.0)
+    boxes[:, 3:5] *= rng.uniform(0.3, 2.0, (200, 2))
+    overlaps = np.triu(iou_bev(boxes, boxes), 1)  # (K, K) j < i
+    for thresh in (0.05, 0.3, 0.7):
+        cand = suppression_candidates(torch.from_numpy(boxes), thresh).numpy()
+        assert not (np.tril(cand).any())
+        assert cand[overlaps > thresh].all()
+        if thresh >= 0.3:  # the bound prunes even pairs that overlap a little
+            assert cand.sum() < (overlaps > 0).sum()
