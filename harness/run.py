@@ -41,7 +41,7 @@ class RunConfig:
 
 PROFILES = {
     "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3),
-    "default": RunConfig("default", "compact", train_frames=400, sotif_frames=None, epochs=None, runtime_frames=10),
+    "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=10),
     "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda"),
 }
 
