@@ -6,9 +6,15 @@ Exit status: 0 on success, 2 on bad input (the message names the file and the pr
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import traceback
 from pathlib import Path
+
+# Waiting OpenMP threads sleep instead of spinning (set before torch loads its OpenMP runtime):
+# with spinning, a 2-core machine with one other busy process ran a PointPillars training step
+# in 9.1 s instead of 0.75 s.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 BAD_INPUT = 2
 INTERNAL = 1
