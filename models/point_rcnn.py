@@ -24,7 +24,7 @@ from torch.nn import functional as F
 
 from harness.types import Sample
 from models.base import Detector
-from models.nms import nms_rotated
+from models.nms import nms_in_order, nms_rotated
 from models.point_roi_pool import RoISetAbstraction, inside_rois, roi_point_pool
 from models.pointnet2 import FeaturePropagation, SetAbstraction, farthest_point_sample, group_points, shared_mlp
 from models.roi_head import (
@@ -32,7 +32,6 @@ from models.roi_head import (
     RoITargetConfig,
     RoITargets,
     decode_canonical,
-    nms_in_order,
     refine_loss,
     sample_rois,
 )

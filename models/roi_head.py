@@ -27,8 +27,7 @@ from torch import Tensor, nn
 
 from harness.boxes import iou_3d
 from models.anchor_head import AnchorHead
-from models.iou import iou_bev_pairs
-from models.nms import suppress_fixed_point
+from models.nms import nms_in_order
 from models.pointnet2 import PointBatchNorm
 
 
@@ -232,40 +231,6 @@ def select_ranked(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: i
     boxes, scores = boxes[good], scores[good]
     keep = nms_in_order(boxes, nms_iou)[:max_out]
     return boxes[keep], scores[keep]
-
-
-_BOUND_SLACK = 0.9  # the AABB bound is tested against 90 % of the IoU limit: float-safe
-
-
-def suppression_candidates(boxes: Tensor, iou_thresh: float) -> Tensor:
-    """(K, K) bool, True where j < i and the rotated BEV IoU of boxes j, i may exceed the limit.
-
-    The intersection of two rotated rectangles lies inside the intersection of their axis-aligned
-    BEV bounds, so IoU > t needs bound_area * (1 + t) > t * (area_j + area_i); pairs failing that
-    (by a 10 % margin) cannot suppress each other. boxes (K, 7).
-    """
-    c, s = torch.cos(boxes[:, 6]).abs(), torch.sin(boxes[:, 6]).abs()  # (K,)
-    half = torch.stack([boxes[:, 3] * c + boxes[:, 4] * s, boxes[:, 3] * s + boxes[:, 4] * c], 1) / 2
-    lo, hi = boxes[:, 0:2] - half, boxes[:, 0:2] + half  # (K, 2) AABB corners, m
-    ext = (torch.minimum(hi[:, None], hi[None]) - torch.maximum(lo[:, None], lo[None])).clamp(min=0)
-    bound = ext[..., 0] * ext[..., 1]  # (K, K) m^2, >= the rotated intersection
-    area = boxes[:, 3] * boxes[:, 4]  # (K,)
-    need = iou_thresh / (1 + iou_thresh) * (area[:, None] + area[None]) * _BOUND_SLACK
-    return torch.triu(bound > need, diagonal=1)
-
-
-def nms_in_order(boxes: Tensor, iou_thresh: float) -> Tensor:
-    """(M,) int64 indices of boxes (K, 7), given best first, kept by greedy rotated BEV NMS.
-
-    Same result as ``models.nms.nms_rotated`` on decreasing scores; the rotated IoU is computed
-    only for the pairs of ``suppression_candidates`` (a few percent of K^2 for proposals).
-    """
-    k = boxes.shape[0]
-    j, i = torch.nonzero(suppression_candidates(boxes, iou_thresh), as_tuple=True)  # (P,), (P,)
-    over = iou_bev_pairs(boxes[j], boxes[i]) > iou_thresh  # (P,)
-    flat = boxes.new_zeros(k * k).scatter(0, j * k + i, over.to(boxes.dtype))  # (K*K,)
-    keep = suppress_fixed_point(flat.reshape(k, k) > 0)  # (K,)
-    return torch.nonzero(keep)[:, 0]
 
 
 def propose(head: AnchorHead, feats: Tensor, cfg: ProposalConfig) -> tuple[Tensor, Tensor]:

@@ -6,9 +6,9 @@ import torch
 
 from harness.boxes import corners_3d, iou_3d, iou_bev, wrap_angle
 from models.roi_head import (RefineHead, RoITargetConfig, box_corners, corner_loss,
-                             decode_canonical, encode_canonical, iou_score_target, nms_in_order,
-                             ranked_topk, refine_loss, sample_rois, select_ranked,
-                             suppression_candidates)
+                             decode_canonical, encode_canonical, iou_score_target,
+                             ranked_topk, refine_loss, sample_rois, select_ranked)
+from models.nms import nms_in_order, suppression_candidates
 
 
 def random_boxes(rng, k, spread=20.0):
