@@ -66,6 +66,13 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
             "peak_memory_mb": peak_memory_mb(onnx_path, data, min(n_frames, 5))}
 
 
+def _reason(exc: Exception, limit: int = 400) -> str:
+    """The informative part of a runtime's message: without OpenVINO's "Exception from file:line"
+    frames, on one line, at most ``limit`` characters."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip() and not ln.startswith("Exception from ")]
+    return " ".join(lines)[:limit]
+
+
 def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
     """OpenVINO vs onnxruntime on the same frames: latency p50/p90 and agreement.
 
@@ -79,7 +86,7 @@ def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
     try:
         ov_det = OnnxDetector(onnx_path, runtime="openvino")
     except Exception as exc:  # noqa: BLE001 - any compile failure is the finding
-        return {"error": f"compile: {type(exc).__name__}: {str(exc).splitlines()[0][:300] if str(exc) else ''}"}
+        return {"error": f"compile: {type(exc).__name__}: {_reason(exc)}"}
     t_ov, t_ort, same, diffs = [], [], [], []
     for fid in _frames(data, n_frames):
         points, _, image, l2i, _ = _frame_inputs(ort_det, data, fid)
@@ -89,7 +96,7 @@ def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
             out_v = ov_det(points, image, l2i)
             t_ov.append(1000 * (time.perf_counter() - t0))
         except Exception as exc:  # noqa: BLE001
-            return {"error": f"frame {fid}: {type(exc).__name__}: {str(exc).splitlines()[0][:300] if str(exc) else ''}"}
+            return {"error": f"frame {fid}: {type(exc).__name__}: {_reason(exc)}"}
         ort_det(points, image, l2i)
         t0 = time.perf_counter()
         out_o = ort_det(points, image, l2i)

@@ -35,6 +35,6 @@ def test_openvino_missing_or_failing_is_reported(make_onnx, dataset, tmp_path, m
     ov = pytest.importorskip("openvino")
 
     def refuse(self, *a, **k):
-        raise RuntimeError("unsupported operation Foo\nmore detail")
+        raise RuntimeError("Exception from src/core.cpp:132:\nunsupported operation Foo\nmore detail\n")
     monkeypatch.setattr(ov.Core, "compile_model", refuse)
-    assert compare_openvino(path, dataset)["error"] == "compile: RuntimeError: unsupported operation Foo"
+    assert compare_openvino(path, dataset)["error"] == "compile: RuntimeError: unsupported operation Foo more detail"
