@@ -32,6 +32,21 @@ def outputs_agree(a: dict, b: dict, atol: float = 1e-3) -> tuple[bool, float]:
     return bool(same), float(np.abs(a["scores"][ia] - b["scores"][ib]).max())
 
 
+def _timed(fn) -> tuple:
+    """``fn()`` once to warm up, then once timed: (its output, milliseconds)."""
+    fn()
+    t0 = time.perf_counter()
+    out = fn()
+    return out, 1000 * (time.perf_counter() - t0)
+
+
+def _agreement(results: list[tuple[bool, float]]) -> dict:
+    """Share of frames with the same boxes and the largest score difference, from ``outputs_agree``."""
+    diffs = [d for _, d in results if not np.isnan(d)]
+    return {"same_boxes": float(np.mean([ok for ok, _ in results])),
+            "max_abs_score_diff": max(diffs) if diffs else None, "frames": len(results)}
+
+
 def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
     """torch eager vs onnxruntime on the same frames: p50 latencies, speed ratio, agreement."""
     import torch
@@ -39,30 +54,21 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
     model, _ = load_checkpoint(checkpoint)
     model.eval()
     det = OnnxDetector(onnx_path)
-    t_torch, t_ort, same, diffs = [], [], [], []
+    t_torch, t_ort, agree = [], [], []
     for fid in _frames(data, n_frames):
         points, _, image, l2i, _ = _frame_inputs(det, data, fid)
         args = [torch.from_numpy(points)]
         if det.info.uses_camera:
             args += [torch.from_numpy(image), torch.from_numpy(l2i)]
         with torch.no_grad():
-            model(*args)  # warm-up
-            t0 = time.perf_counter()
-            out_t = model(*args)
-            t_torch.append(1000 * (time.perf_counter() - t0))
-        det(points, image, l2i)
-        t0 = time.perf_counter()
-        out_o = det(points, image, l2i)
-        t_ort.append(1000 * (time.perf_counter() - t0))
-        torch_out = {"boxes": out_t[0].numpy(), "scores": out_t[1].numpy()}
-        ok, d = outputs_agree(torch_out, out_o)
-        same.append(ok)
-        if not np.isnan(d):
-            diffs.append(d)
+            out_t, ms = _timed(lambda: model(*args))
+        t_torch.append(ms)
+        out_o, ms = _timed(lambda: det(points, image, l2i))
+        t_ort.append(ms)
+        agree.append(outputs_agree({"boxes": out_t[0].numpy(), "scores": out_t[1].numpy()}, out_o))
     p50_t, p50_o = float(np.median(t_torch)), float(np.median(t_ort))
     return {"torch_eager_ms_p50": p50_t, "ort_ms_p50_same_frames": p50_o, "ort_speedup": p50_t / p50_o,
-            "agreement": {"same_boxes": float(np.mean(same)), "max_abs_score_diff": max(diffs) if diffs else None,
-                          "frames": len(same)},
+            "agreement": _agreement(agree),
             "peak_memory_mb": peak_memory_mb(onnx_path, data, min(n_frames, 5))}
 
 
@@ -87,30 +93,21 @@ def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
         ov_det = OnnxDetector(onnx_path, runtime="openvino")
     except Exception as exc:  # noqa: BLE001 - any compile failure is the finding
         return {"error": f"compile: {type(exc).__name__}: {_reason(exc)}"}
-    t_ov, t_ort, same, diffs = [], [], [], []
+    t_ov, t_ort, agree = [], [], []
     for fid in _frames(data, n_frames):
         points, _, image, l2i, _ = _frame_inputs(ort_det, data, fid)
-        try:
-            ov_det(points, image, l2i)  # warm-up (shape-specific compilation)
-            t0 = time.perf_counter()
-            out_v = ov_det(points, image, l2i)
-            t_ov.append(1000 * (time.perf_counter() - t0))
+        try:  # the warm-up call also compiles for this input shape
+            out_v, ms = _timed(lambda: ov_det(points, image, l2i))
         except Exception as exc:  # noqa: BLE001
             return {"error": f"frame {fid}: {type(exc).__name__}: {_reason(exc)}"}
-        ort_det(points, image, l2i)
-        t0 = time.perf_counter()
-        out_o = ort_det(points, image, l2i)
-        t_ort.append(1000 * (time.perf_counter() - t0))
-        ok, d = outputs_agree(out_o, out_v)
-        same.append(ok)
-        if not np.isnan(d):
-            diffs.append(d)
-    if not same:
+        t_ov.append(ms)
+        out_o, ms = _timed(lambda: ort_det(points, image, l2i))
+        t_ort.append(ms)
+        agree.append(outputs_agree(out_o, out_v))
+    if not agree:
         return {"error": "no frames"}
     return {"latency_ms_p50": float(np.median(t_ov)), "latency_ms_p90": float(np.percentile(t_ov, 90)),
-            "ort_ms_p50_same_frames": float(np.median(t_ort)),
-            "agreement": {"same_boxes": float(np.mean(same)), "max_abs_score_diff": max(diffs) if diffs else None,
-                          "frames": len(same)},
+            "ort_ms_p50_same_frames": float(np.median(t_ort)), "agreement": _agreement(agree),
             "error": None}
 
 
