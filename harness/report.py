@@ -127,8 +127,10 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "Headline 3D and BEV AP, 95% interval, KITTI moderate AP40, AP per distance bin and RCNN recall.",
                 [("", t["weather_detail"], 1)], ["ap_distance", "pr_curves"], details=True),
         Section("runtime", "Runtime",
-                "onnxruntime latency per frame (p50/p90), throughput, ONNX size, parameters, peak resident memory, "
-                "torch eager vs onnxruntime (speed-up, share of frames with the same boxes, largest score difference).",
+                "onnxruntime latency per frame (p50/p90, timed one model at a time with every core), throughput, "
+                "latency p50 during the prediction stage (all test frames, beside another job when the run has "
+                "several), ONNX size, parameters, peak resident memory, torch eager vs onnxruntime (speed-up, share "
+                "of frames with the same boxes, largest score difference).",
                 [("", t["runtime"], 2)], ["ap_latency"]),
         Section("data", "Data", "The SOTIF test data per weather preset and one scene per preset.",
                 [("", t["data_by_weather"], 1)], ["data", "bev"]),

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.infer import OnnxDetector, _frame_inputs
+from harness.infer import OnnxDetector, _frame_inputs, latency_summary
 from harness.kitti import read_image_set
 
 
@@ -48,7 +48,8 @@ def _agreement(results: list[tuple[bool, float]]) -> dict:
 
 
 def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
-    """torch eager vs onnxruntime on the same frames: p50 latencies, speed ratio, agreement."""
+    """torch eager vs onnxruntime on the same frames: p50 latencies, speed ratio, agreement, and the
+    onnxruntime latency summary (p50/p90/frames per second) of those frames."""
     import torch
     from models.zoo import load_checkpoint
     model, _ = load_checkpoint(checkpoint)
@@ -67,8 +68,8 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
         t_ort.append(ms)
         agree.append(outputs_agree({"boxes": out_t[0].numpy(), "scores": out_t[1].numpy()}, out_o))
     p50_t, p50_o = float(np.median(t_torch)), float(np.median(t_ort))
-    return {"torch_eager_ms_p50": p50_t, "ort_ms_p50_same_frames": p50_o, "ort_speedup": p50_t / p50_o,
-            "agreement": _agreement(agree),
+    return {"onnxruntime": latency_summary(t_ort), "torch_eager_ms_p50": p50_t, "ort_ms_p50_same_frames": p50_o,
+            "ort_speedup": p50_t / p50_o, "agreement": _agreement(agree),
             "peak_memory_mb": peak_memory_mb(onnx_path, data, min(n_frames, 5))}
 
 

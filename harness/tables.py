@@ -261,7 +261,8 @@ def runtime_table(summary: dict) -> pd.DataFrame:
         rt = m.get("runtime", {})
         row = {"model": name, "architecture": m.get("architecture"), "two_stage": m.get("two_stage"),
                "ort_p50_ms": _get(rt, "onnxruntime", "latency_ms_p50"), "ort_p90_ms": _get(rt, "onnxruntime", "latency_ms_p90"),
-               "fps": _get(rt, "onnxruntime", "fps"), "size_mb": _get(m, "size_mb"), "params_m": _get(m, "params") / 1e6,
+               "fps": _get(rt, "onnxruntime", "fps"), "predict_p50_ms": _get(rt, "prediction", "latency_ms_p50"),
+               "size_mb": _get(m, "size_mb"), "params_m": _get(m, "params") / 1e6,
                "peak_memory_mb": _get(rt, "peak_memory_mb"), "torch_p50_ms": _get(rt, "torch_eager_ms_p50"),
                "ort_speedup": _get(rt, "ort_speedup"), "same_boxes": _get(rt, "agreement", "same_boxes"),
                "max_score_diff": _get(rt, "agreement", "max_abs_score_diff"), "train_s": _get(m, "train", "seconds")}

@@ -12,9 +12,12 @@ writes the file atomically; it returns the op histogram. Camera models (``uses_c
 from __future__ import annotations
 
 import collections
+import contextlib
 import json
+import logging
 import os
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -93,6 +96,24 @@ def contract_metadata(model: Detector, metadata: dict[str, str]) -> dict[str, st
     return meta
 
 
+@contextlib.contextmanager
+def _quiet_exporter():
+    """The exporter's chatter (torchvision absent, empty attribute lists, deprecations) off the
+    progress display; errors still raise."""
+    loggers = [logging.getLogger(n) for n in ("torch.onnx", "onnx_ir", "onnxscript")]
+    levels = [lg.level for lg in loggers]
+    for lg in loggers:
+        lg.setLevel(logging.ERROR)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            yield
+    finally:
+        for lg, level in zip(loggers, levels):
+            lg.setLevel(level)
+
+
 def export_onnx(model: Detector, path, metadata: dict[str, str]) -> dict[str, int]:
     """Export ``model`` to ONE self-contained ONNX file; returns the op histogram."""
     path = Path(path)
@@ -100,7 +121,7 @@ def export_onnx(model: Detector, path, metadata: dict[str, str]) -> dict[str, in
     inputs = example_inputs(model)
     names = list(model.input_names)
     dynamic = [{0: torch.export.Dim("num_points", min=0)}] + [None] * (len(inputs) - 1)
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as tmp, _quiet_exporter():
         try:
             program = torch.onnx.export(model, inputs, dynamo=True, input_names=names,
                                         output_names=list(model.output_names),

@@ -25,7 +25,7 @@ from models.backbone2d import BEVBackbone
 from models.base import Detector
 from models.losses import sigmoid_focal_loss
 from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITargetConfig,
-                             finalize, propose, refine_loss, sample_rois)
+                             finalize, propose, refine_loss, roi_support, sample_rois)
 from models.roi_pool import roiaware_pool, to_roi_frame
 from models.single_stage import frame_targets
 from models.sparse import SparseInverseConv3d, SparseTensor, SubMConv3d, conv_block, height_compress
@@ -231,7 +231,7 @@ class PartA2(Detector):
         xyz, feats, seg, part, bev = self.stage1(points)
         rois, roi_scores = propose(self.rpn, bev, self.cfg.proposals_test)
         logit, deltas = self.rcnn(rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
-        boxes, scores, rcnn_boxes = finalize(rois, logit, deltas, self.cfg.output)
+        boxes, scores, rcnn_boxes = finalize(rois, logit, deltas, self.cfg.output, roi_support(xyz, rois))
         return boxes, scores, rois, roi_scores, rcnn_boxes
 
     def frame_loss(self, sample: Sample, device) -> dict[str, Tensor]:

@@ -32,7 +32,7 @@ from models.image_branch import bilinear_sample
 from models.losses import sigmoid_focal_loss
 from models.pointnet2 import PointBatchNorm, SetAbstraction, farthest_point_sample
 from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITargetConfig,
-                             finalize, propose, refine_loss, sample_rois)
+                             finalize, propose, refine_loss, roi_support, sample_rois)
 from models.roi_pool import RoIGridPool, to_roi_frame
 from models.single_stage import frame_targets
 from models.sparse import SparseTensor, height_compress
@@ -194,9 +194,9 @@ class PVRCNN(Detector):
         self.refine = RefineHead(self.roi_grid.out_channels * cfg.grid ** 3, cfg.fc, cfg.dropout)
         self._rng = np.random.default_rng(cfg.seed)
 
-    def stage1(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def stage1(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """points (N, 4) -> keypoints (P, 3), keypoint features (P, C), keypoint logit (P,),
-        RPN features (1, C', H, W)."""
+        RPN features (1, C', H, W), voxel means (V, 3)."""
         voxels = hard_voxelize(points, self.grid, self.cfg.max_points, self.cfg.max_voxels)
         means = self.vfe(voxels)  # (V, 4) mean x, y, z, intensity of each voxel's points
         out, levels = self.backbone3d(SparseTensor(means, voxels.coords, voxels.shape))
@@ -204,7 +204,7 @@ class PVRCNN(Detector):
         keypoints = means[farthest_point_sample(means[:, :3], self.cfg.keypoints), :3]  # (P, 3)
         sources = [(level_centres(levels[i], self.grid), levels[i].features) for i in self.cfg.levels]
         kp_feats, kp_logit = self.vsa(keypoints, means, sources, bev)
-        return keypoints, kp_feats, kp_logit, self.backbone2d(bev)
+        return keypoints, kp_feats, kp_logit, self.backbone2d(bev), means[:, :3]
 
     def stage2(self, rois: Tensor, keypoints: Tensor, kp_feats: Tensor) -> tuple[Tensor, Tensor]:
         """rois (K, 7) -> IoU-guided logit (K,), residuals (K, 7)."""
@@ -213,15 +213,15 @@ class PVRCNN(Detector):
 
     def forward(self, points: Tensor):
         """points (N, 4) -> boxes (M, 7), scores (M,), rois (K, 7), roi_scores (K,), rcnn_boxes (K, 7)."""
-        keypoints, kp_feats, _, bev = self.stage1(points)
+        keypoints, kp_feats, _, bev, voxel_xyz = self.stage1(points)
         rois, roi_scores = propose(self.rpn, bev, self.cfg.proposals_test)
         logit, deltas = self.stage2(rois, keypoints, kp_feats)
-        boxes, scores, rcnn_boxes = finalize(rois, logit, deltas, self.cfg.output)
+        boxes, scores, rcnn_boxes = finalize(rois, logit, deltas, self.cfg.output, roi_support(voxel_xyz, rois))
         return boxes, scores, rois, roi_scores, rcnn_boxes
 
     def frame_loss(self, sample: Sample, device) -> dict[str, Tensor]:
         points, gt, ignore = frame_targets(sample, device)
-        keypoints, kp_feats, kp_logit, bev = self.stage1(points)
+        keypoints, kp_feats, kp_logit, bev, _ = self.stage1(points)
         losses = dict(self.rpn.loss(bev, gt, ignore))
         kp_fg = keypoint_targets(keypoints, gt, self.cfg.kp_margin)
         losses["keypoint"] = sigmoid_focal_loss(kp_logit, kp_fg, torch.ones_like(kp_fg)) / kp_fg.sum().clamp(min=1.0)

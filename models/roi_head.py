@@ -248,10 +248,23 @@ class OutputConfig:
     nms_pre: int = 512  # at least the number of RoIs: every refined box may enter the NMS
 
 
-def finalize(rois: Tensor, logit: Tensor, deltas: Tensor,
-             cfg: OutputConfig) -> tuple[Tensor, Tensor, Tensor]:
-    """rois (K, 7), logit (K,), deltas (K, 7) -> boxes (M, 7), scores (M,), rcnn_boxes (K, 7)."""
+def roi_support(xyz: Tensor, rois: Tensor) -> Tensor:
+    """(K,) bool: at least one of the points / voxel centres xyz (N, 3) lies inside the RoI (K, 7)."""
+    from models.point_roi_pool import inside_rois
+    # a count, not .any(): ONNX ReduceMax over an empty axis is not False in onnxruntime
+    return inside_rois(xyz, rois).to(torch.int32).sum(dim=1) > 0
+
+
+def finalize(rois: Tensor, logit: Tensor, deltas: Tensor, cfg: OutputConfig,
+             support: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+    """rois (K, 7), logit (K,), deltas (K, 7) -> boxes (M, 7), scores (M,), rcnn_boxes (K, 7).
+
+    ``support`` (K,) bool (``roi_support``): a RoI with no LiDAR data inside pooled nothing, so its
+    score is only the head's bias; such RoIs give no box (else an empty cloud gives boxes)."""
     rcnn_boxes = decode_canonical(deltas, rois)  # (K, 7)
-    boxes, scores = select_ranked(rcnn_boxes, torch.sigmoid(logit), cfg.score_thresh,
+    scores = torch.sigmoid(logit)
+    if support is not None:
+        scores = scores * support.to(scores.dtype)
+    boxes, scores = select_ranked(rcnn_boxes, scores, cfg.score_thresh,
                                   cfg.nms_pre, cfg.nms_iou, cfg.max_out)
     return boxes, scores, rcnn_boxes

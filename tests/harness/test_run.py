@@ -3,9 +3,12 @@ import json
 
 import pytest
 
+from dataclasses import replace
+
 from harness.run import RunConfig, run
 
-TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2)
+TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2,
+                 jobs=1)
 
 
 def stage_keys(run_dir):
@@ -23,17 +26,22 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     done = stage_keys(out)
     assert set(done) == {"simulate_train", "simulate_sotif"}
     monkeypatch.undo()
-    # 2. resumed: the simulation is not redone, the rest runs to the report
+    # 2. resumed, two models in two job processes: the simulation is not redone, the rest runs to the report
     calls = []
     import simulator
     real_generate = simulator.generate
     monkeypatch.setattr(simulator, "generate", lambda *a, **k: calls.append(a) or real_generate(*a, **k))
-    run(models=["pointpillars"], out=out, progress=False, config=TINY)
+    two = ["pointpillars", "point_rcnn"]
+    run(models=two, out=out, progress=False, config=replace(TINY, jobs=2))
     assert calls == []
     summary = json.loads((out / "results.json").read_text())
-    assert summary["schema"] == "sotif-bench/run/1" and list(summary["models"]) == ["pointpillars"]
-    rt = summary["models"]["pointpillars"]["runtime"]
-    assert rt["agreement"]["same_boxes"] == 1.0 and "openvino" in rt  # second runtime, or why not
+    assert summary["schema"] == "sotif-bench/run/1" and list(summary["models"]) == two
+    for name in two:
+        rt = summary["models"][name]["runtime"]
+        assert rt["agreement"]["same_boxes"] == 1.0 and "openvino" in rt  # second runtime, or why not
+        assert rt["onnxruntime"]["n_timed"] == TINY.runtime_frames  # timed alone, not during prediction
+        assert rt["prediction"]["n_frames"] == len((out / "data/sotif/ImageSets/test.txt").read_text().split())
+    assert (out / "models/point_rcnn.onnx").is_file() and (out / "results/point_rcnn.json").is_file()
     for rel in ("config.json", "models/pointpillars.onnx", "predictions/pointpillars/predict.json",
                 "results/pointpillars.json", "tables/weather_headline.csv", "report.md", "index.html"):
         assert (out / rel).is_file(), rel
@@ -43,9 +51,9 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     meta = read_frames_meta(out / "data/sotif/meta/frames.csv").set_index("frame_id")
     test_weathers = set(meta.loc[read_image_set(out / "data/sotif/ImageSets/test.txt"), "weather"])
     assert set(res["groups"]["rows"]) == test_weathers and len(test_weathers) > 15
-    # 3. nothing changed: every stage is skipped (records untouched)
+    # 3. nothing changed: every stage is skipped (records untouched), whatever the job count
     before = stage_keys(out)
-    run(models=["pointpillars"], out=out, progress=False, config=TINY)
+    run(models=two, out=out, progress=False, config=TINY)
     assert stage_keys(out) == before
 
 

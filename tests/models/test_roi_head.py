@@ -4,10 +4,10 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from harness.boxes import corners_3d, iou_3d, iou_bev, wrap_angle
-from models.roi_head import (RefineHead, RoITargetConfig, box_corners, corner_loss,
-                             decode_canonical, encode_canonical, iou_score_target,
-                             ranked_topk, refine_loss, sample_rois, select_ranked)
+from harness.boxes import corners_3d, iou_3d, iou_bev, points_in_boxes, wrap_angle
+from models.roi_head import (OutputConfig, RefineHead, RoITargetConfig, box_corners, corner_loss,
+                             decode_canonical, encode_canonical, finalize, iou_score_target,
+                             ranked_topk, refine_loss, roi_support, sample_rois, select_ranked)
 from models.nms import nms_in_order, suppression_candidates
 
 
@@ -179,3 +179,19 @@ def test_suppression_candidates_hold_every_overlapping_pair():
         assert cand[overlaps > thresh].all()
         if thresh >= 0.3:  # the bound prunes even pairs that overlap a little
             assert cand.sum() < (overlaps > 0).sum()
+
+
+def test_roi_support_matches_points_in_boxes_and_gates_finalize():
+    rng = np.random.default_rng(5)
+    rois = random_boxes(rng, 16, spread=6.0)
+    xyz = rng.uniform(-8, 8, (300, 3)).astype(np.float32)
+    got = roi_support(torch.from_numpy(xyz), torch.from_numpy(rois)).numpy()
+    want = points_in_boxes(xyz, rois).any(0)
+    np.testing.assert_array_equal(got, want)
+    assert 0 < got.sum() < len(rois)
+    logit, deltas = torch.full((16,), 3.0), torch.zeros(16, 7)  # every RoI confident, unrefined
+    cfg = OutputConfig(nms_iou=1.0)  # no suppression: the support alone decides
+    boxes, scores, rcnn = finalize(torch.from_numpy(rois), logit, deltas, cfg, torch.from_numpy(got))
+    assert len(boxes) == got.sum() and len(rcnn) == 16
+    np.testing.assert_allclose(np.sort(boxes[:, 0].numpy()), np.sort(rois[got, 0]), atol=1e-5)
+    assert len(finalize(torch.from_numpy(rois), logit, deltas, cfg)[0]) == 16

@@ -129,8 +129,8 @@ def test_hard_returns_match_effect_formulas():
 
 @pytest.mark.parametrize("cover", [0.0, 0.8])
 def test_first_returns_equal_merge_then_hard_returns(cover):
-    """The fused pass over Embree's raw output equals raycast.merge_hits followed by hard_returns."""
-    from simulator.lidar import first_returns, hard_returns
+    """The pass over Embree's raw output equals raycast.merge_hits followed by hard_returns; then the noise."""
+    from simulator.lidar import add_range_noise, first_returns, hard_returns
     from simulator.materials import GROUND, REFLECTIVITY
     from simulator.raycast import merge_hits
 
@@ -148,9 +148,7 @@ def test_first_returns_equal_merge_then_hard_returns(cover):
     mat_s, mat_d = rng.choice([0, 1, 2, 4, 13], n_static), rng.choice([9, 10, 33, 40], n_dyn)
     refl = REFLECTIVITY.astype(np.float64)
     weather = (cover, 0.004, 0.003, 0.75, 1.4e-6, 1.0, 120.0)
-    noise = rng.standard_normal(n)
-    r, i, far = first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs, refl, GROUND, *weather,
-                              noise, 0.02, 0.015)
+    r, i, detected = first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs, refl, GROUND, *weather)
     t_ref, normal32, mat_ref, actor = merge_hits(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d,
                                                  np.zeros(n_dyn, np.int64), dirs)
     ng = ng_s.astype(np.float64)  # the chosen triangle's normal in float64 (merge_hits' is float32-exact)
@@ -162,12 +160,16 @@ def test_first_returns_equal_merge_then_hard_returns(cover):
     np.testing.assert_allclose(normal[hit], normal32[hit], atol=1e-6)
     r_ref, i_ref = hard_returns(np.where(t_ref >= 1e37, np.inf, t_ref), normal, dirs, mat_ref, refl, GROUND, *weather)
     ok = np.isfinite(r_ref)
-    np.testing.assert_array_equal(np.isfinite(r), ok)
+    np.testing.assert_array_equal(detected, np.flatnonzero(ok))
     assert ok.sum() > n // 4
-    noisy = r_ref[ok] + noise[ok] * np.hypot(0.02, 0.015 * r_ref[ok])
-    np.testing.assert_allclose(r[ok], noisy, rtol=1e-14)
-    np.testing.assert_array_equal(far, np.where(ok, r, 120.0))
+    np.testing.assert_array_equal(r, r_ref)  # NaN where lost
     np.testing.assert_allclose(i, i_ref, rtol=1e-12, atol=1e-15)
+    z = rng.standard_normal(len(detected))
+    far = add_range_noise(r, detected, z, 0.02, 0.015, 120.0)
+    noisy = r_ref[ok] + z * np.hypot(0.02, 0.015 * r_ref[ok])
+    np.testing.assert_allclose(r[ok], noisy, rtol=1e-14)
+    assert np.isnan(r[~ok]).all()
+    np.testing.assert_array_equal(far, np.where(ok, r, 120.0))
 
 
 def test_pattern_culling_matches_brute_force():
