@@ -24,6 +24,13 @@ def _csv(text: str) -> list[str]:
     return [t.strip() for t in text.split(",") if t.strip()]
 
 
+def _positive_int(text: str) -> int:
+    n = int(text)
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}")
+    return n
+
+
 def cmd_simulate(a) -> int:
     from simulator import generate
     out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=_csv(a.weathers) if a.weathers else None,
@@ -85,7 +92,7 @@ def cmd_evaluate(a) -> int:
 def cmd_run(a) -> int:
     from harness.run import run
     out = run(profile=a.profile, models=_csv(a.models) if a.models else None, out=Path(a.out) if a.out else None,
-              progress=not a.quiet, runtime=a.runtime)
+              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs)
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -156,6 +163,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--models", help="comma-separated model names (default: all available)")
     s.add_argument("--out", help="run directory (default reports/<profile>)")
     s.add_argument("--runtime", choices=["onnxruntime", "openvino"], default="onnxruntime")
+    s.add_argument("--jobs", type=_positive_int,
+                   help="models trained/exported/predicted at once (default: the profile's, 2; 1 = one after the other)")
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser("report", help="re-render a run directory's HTML and Markdown report")

@@ -285,12 +285,15 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
 
 
 def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
-        config: RunConfig | None = None) -> Path:
+        config: RunConfig | None = None, jobs: int | None = None) -> Path:
     """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory.
 
-    ``config`` replaces the profile's RunConfig (tests use a smaller one)."""
+    ``config`` replaces the profile's RunConfig (tests use a smaller one); ``jobs`` its number of
+    models run at once (not part of any stage key: changing it redoes nothing)."""
     from harness.report import render
     cfg, names, run_dir = resolve(profile, models, out, config)
+    if jobs is not None:
+        cfg = replace(cfg, jobs=jobs)
     profile = cfg.profile
     run_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(run_dir / "config.json", json.dumps({**asdict(cfg), "models": names, "runtime": runtime}, indent=1))

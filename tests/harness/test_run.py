@@ -53,8 +53,9 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     assert set(res["groups"]["rows"]) == test_weathers and len(test_weathers) > 15
     # 3. nothing changed: every stage is skipped (records untouched), whatever the job count
     before = stage_keys(out)
-    run(models=two, out=out, progress=False, config=TINY)
+    run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
     assert stage_keys(out) == before
+    assert json.loads((out / "config.json").read_text())["jobs"] == 1
 
 
 def test_bad_profile_and_model_names():
