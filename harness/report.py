@@ -134,7 +134,7 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 [("", t["runtime"], 2)], ["ap_latency"]),
         Section("data", "Data", "The SOTIF test data per weather preset and one scene per preset.",
                 [("", t["data_by_weather"], 1)], ["data", "bev"]),
-        Section("stages", "Pipeline stages", "Wall time per stage of this run (seconds).", [("", t["stages"], 1)], []),
+        Section("stages", "Pipeline stages", "Seconds per stage, as each job recorded it (stages of parallel model jobs overlap, so they add up to more than the wall time).", [("", t["stages"], 1)], []),
     ]
 
 
@@ -146,7 +146,7 @@ def _overview(run: tables.Run) -> dict:
     frames = {k: data.get(f"n_{k}_frames") for k in ("test", "val", "train")}
     total = sum(v for v in (s.get("stage_seconds") or {}).values() if isinstance(v, (int, float)))
     return {"profile": s.get("profile", "?"), "created": s.get("created", "?"), "models": models, "frames": frames,
-            "total_seconds": total or None}
+            "total_seconds": total or None, "wall_seconds": s.get("wall_seconds")}
 
 
 def _html_table(df: pd.DataFrame, decimals: int) -> Markup:

@@ -86,7 +86,7 @@ class Stages:
         self._say(f"[run ] {name}")
         t0 = time.perf_counter()
         info = fn() or {}
-        info = {**info, "seconds": round(time.perf_counter() - t0, 3)}
+        info = {**info, "seconds": round(time.perf_counter() - t0, 3), "finished": round(time.time(), 3)}
         atomic_write_text(self.dir / f"{name}.json", json.dumps({"key": key, "info": info}, indent=1, default=str))
         return info
 
@@ -309,16 +309,27 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         summary[name] = _model_summary(cfg, run_dir, name, *done[name], probe)
     data_stats(run_dir)
     ids = lambda s: len((run_dir / "data" / "sotif" / "ImageSets" / f"{s}.txt").read_text().split())
+    infos = {p.stem: json.loads(p.read_text())["info"] for p in sorted((run_dir / ".stages").glob("*.json"))}
     result = {"schema": RUN_SCHEMA, "profile": profile, "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
               "config": asdict(cfg), "models": summary,
               "data": {"n_test_frames": ids("test"), "n_val_frames": ids("val"),
                        "n_train_frames": len((run_dir / "data" / "train" / "ImageSets" / "train.txt").read_text().split()),
                        "stats": "tables/data_stats.csv"},
-              "stage_seconds": {p.stem: json.loads(p.read_text())["info"].get("seconds")
-                                for p in sorted((run_dir / ".stages").glob("*.json"))}}
+              "stage_seconds": {n: i.get("seconds") for n, i in infos.items()},
+              "wall_seconds": _wall_span(infos)}
     atomic_write_text(run_dir / "results.json", json.dumps(result, indent=1, default=str))
     render(run_dir)
     return run_dir
+
+
+def _wall_span(infos: dict[str, dict]) -> float | None:
+    """Seconds from the start of the first stage to the end of the last one (stages of parallel jobs
+    overlap, so this is less than their sum); None when a record predates the ``finished`` stamp."""
+    spans = [(i["finished"] - i["seconds"], i["finished"]) for i in infos.values()
+             if isinstance(i.get("finished"), (int, float)) and isinstance(i.get("seconds"), (int, float))]
+    if not spans or len(spans) < len(infos):
+        return None
+    return round(max(e for _, e in spans) - min(b for b, _ in spans), 3)
 
 
 def data_stats(run_dir: Path) -> Path:

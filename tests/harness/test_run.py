@@ -35,6 +35,7 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     run(models=two, out=out, progress=False, config=replace(TINY, jobs=2))
     assert calls == []
     summary = json.loads((out / "results.json").read_text())
+    assert 0 < summary["wall_seconds"] <= sum(summary["stage_seconds"].values()) + 1
     assert summary["schema"] == "sotif-bench/run/1" and list(summary["models"]) == two
     for name in two:
         rt = summary["models"][name]["runtime"]
@@ -56,6 +57,14 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
     assert stage_keys(out) == before
     assert json.loads((out / "config.json").read_text())["jobs"] == 1
+
+
+def test_wall_span_of_overlapping_stages():
+    from harness.run import _wall_span
+    infos = {"a": {"seconds": 10.0, "finished": 110.0}, "b": {"seconds": 30.0, "finished": 125.0},
+             "c": {"seconds": 5.0, "finished": 104.0}}
+    assert _wall_span(infos) == 125.0 - 95.0  # b starts first, ends last; a and c overlap it
+    assert _wall_span({**infos, "old": {"seconds": 3.0}}) is None  # a record without the stamp
 
 
 def test_bad_profile_and_model_names():
