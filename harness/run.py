@@ -258,11 +258,12 @@ def _gt_database(cfg: RunConfig, run_dir: Path, names: list[str]) -> None:
     """Build the training set's ground-truth database once, before jobs that would race to build it."""
     from harness.augment import AugmentConfig
     from harness.gt_database import load_or_build
+    from harness.train import uses_gt_sampling
     from models.zoo import build
-    if cfg.jobs > 1 and AugmentConfig().gt_sampling.enabled and any(
-            not build(n, cfg.model_profile).uses_camera for n in names):
+    aug = AugmentConfig()  # what train() uses
+    if cfg.jobs > 1 and any(uses_gt_sampling(build(n, cfg.model_profile), aug) for n in names):
         data = run_dir / "data" / "train"
-        load_or_build(data, data / "gt_database", AugmentConfig().gt_sampling)
+        load_or_build(data, data / "gt_database", aug.gt_sampling)
 
 
 def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple[RunConfig, list[str], Path]:

@@ -26,6 +26,7 @@ from harness.dataset import KittiDataset, config_hash, dataset_hash, has_split
 from harness.gt_database import load_or_build
 from harness.kitti import atomic_write_bytes
 from models import zoo
+from models.base import Detector
 
 
 @dataclass(frozen=True)
@@ -138,6 +139,12 @@ def validation_ap(net, data: Path, max_frames: int | None = None) -> dict:
             "3d_all": head["3d"]["0.7"], "bev_all": head["bev"]["0.7"], "frames": n}
 
 
+def uses_gt_sampling(net: Detector, aug: AugmentConfig) -> bool:
+    """Ground-truth sampling for LiDAR-only models; camera models go without it (the pasted
+    objects would not be in the image)."""
+    return aug.gt_sampling.enabled and not net.uses_camera
+
+
 def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: int | None = None,
           device: str = "cpu", seed: int = 0, progress: bool = True, aug: AugmentConfig = AugmentConfig()) -> Path:
     """Train ``model`` on ``<data>/ImageSets/train.txt``; returns ``<out>/checkpoint.pt``.
@@ -154,7 +161,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
         ds = KittiDataset(data, "train", with_image=net.uses_camera)
         if len(ds) == 0:
             raise ValueError(f"{data / 'ImageSets' / 'train.txt'}: no training frames")
-        use_gts = aug.gt_sampling.enabled and not net.uses_camera
+        use_gts = uses_gt_sampling(net, aug)
         database = load_or_build(data, data / "gt_database", aug.gt_sampling) if use_gts else None
         ident = {"model": model, "profile": profile, "data_hash": dataset_hash(data),
                  "config_hash": config_hash({"model": asdict(cfg), "train": asdict(tcfg), "epochs": epochs,

@@ -57,6 +57,16 @@ def _train_steps(model: torch.nn.Module, sample: Sample, steps: int) -> tuple[fl
         totals.append(float(loss.detach()))
     return float(np.mean(totals[:2])), float(np.mean(totals[-2:]))
 
+def _no_box_on_empty_cloud(model: torch.nn.Module, onnx_path) -> None:
+    """A two-stage model's RoIs of an empty cloud pooled nothing: no refined box, in torch and in
+    onnxruntime."""
+    from models.export import run_onnx
+    empty = np.zeros((0, 4), np.float32)
+    with torch.no_grad():
+        boxes, scores, rois, roi_scores, _ = model(torch.from_numpy(empty))
+    assert len(rois) > 0 and len(boxes) == 0 and len(scores) == 0
+    assert len(run_onnx(onnx_path, empty)[0]) == 0
+
 
 @pytest.fixture
 def two_car_scene():
@@ -74,3 +84,9 @@ def random_cloud():
 def train_steps():
     """``train_steps(model, sample, steps) -> (first loss, last loss)``: Adam on one frame."""
     return _train_steps
+
+
+@pytest.fixture
+def no_box_on_empty_cloud():
+    """``no_box_on_empty_cloud(model, onnx_path)``: asserts the RoIs of an empty cloud give no box."""
+    return _no_box_on_empty_cloud
