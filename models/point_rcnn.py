@@ -39,7 +39,7 @@ from models.roi_head import (
 
 @dataclass(frozen=True)
 class PointRCNNConfig:
-    pc_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
+    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
     num_points: int = 4096  # in-range points thinned to this count for every later stage
     sa_npoints: tuple[int, ...] = (512, 128, 32, 8)
     sa_radii: tuple[tuple[float, ...], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))

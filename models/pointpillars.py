@@ -18,8 +18,9 @@ from models.voxelize import Grid, hard_voxelize
 
 @dataclass(frozen=True)
 class PointPillarsConfig:
-    pc_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 1.0)  # metres, x0 y0 z0 x1 y1 z1
-    voxel_size: tuple[float, float, float] = (0.25, 0.25, 4.0)  # pillar size, metres
+    # metres, x0 y0 z0 x1 y1 z1: the labelled highway (cars to 80 m ahead, both carriageways)
+    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 81.92, 32.0, 1.0)
+    voxel_size: tuple[float, float, float] = (0.32, 0.32, 4.0)  # pillar size, metres (as Waymo's)
     max_points: int = 32  # per pillar
     max_voxels: int = 16000  # pillars
     pfn_channels: int = 32

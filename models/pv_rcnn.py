@@ -43,7 +43,7 @@ from models.voxelize import Grid, hard_voxelize
 
 @dataclass(frozen=True)
 class PVRCNNConfig:
-    pc_range: tuple[float, ...] = (0.0, -19.2, -3.0, 76.8, 19.2, 1.8)  # x0 y0 z0 x1 y1 z1, m
+    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.8)  # x0 y0 z0 x1 y1 z1, m
     voxel_size: tuple[float, float, float] = (0.4, 0.4, 0.4)  # m
     max_points: int = 5  # per voxel
     max_voxels: int = 40000

@@ -21,7 +21,7 @@ from models.voxelize import Grid, Voxels, hard_voxelize
 
 @dataclass(frozen=True)
 class SECONDConfig:
-    pc_range: tuple[float, ...] = (0.0, -20.0, -3.0, 80.0, 20.0, 1.0)  # metres
+    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.0)  # metres: the labelled highway
     voxel_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # metres
     max_points: int = 5  # per voxel
     max_voxels: int = 40000
