@@ -96,8 +96,7 @@ CONFIGS = {
 
 def voxel_centres(x: SparseTensor, grid: Grid) -> Tensor:
     """(V, 3) x, y, z centres in metres of full-resolution voxels."""
-    zyx = x.coords.to(torch.float32)  # (V, 3) indices
-    return (torch.flip(zyx, dims=[1]) + 0.5) * grid.size() + grid.lower()
+    return grid.centres(x.coords)
 
 
 class SparseUNet(nn.Module):

@@ -35,6 +35,7 @@ from models.roi_head import (
     refine_loss,
     sample_rois,
 )
+from models.voxelize import range_mask
 
 
 @dataclass(frozen=True)
@@ -266,9 +267,7 @@ class PointRCNN(Detector):
         points (repeats never win a later farthest point sampling step); an empty one gives
         zero points.
         """
-        lo = points.new_tensor(self.cfg.pc_range[:3])
-        hi = points.new_tensor(self.cfg.pc_range[3:])
-        inside = ((points[:, :3] >= lo) & (points[:, :3] < hi)).all(1)  # (N,)
+        inside = range_mask(points, self.cfg.pc_range)  # (N,)
         pts = torch.cat([points[inside], points.new_zeros(1, 4)])  # (n + 1, 4): row n read only if n == 0
         step = (pts.shape[0] - 1) / self.cfg.num_points
         idx = torch.arange(self.cfg.num_points, device=pts.device, dtype=torch.float32) * step

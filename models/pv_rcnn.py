@@ -117,8 +117,7 @@ def level_centres(x: SparseTensor, grid: Grid) -> Tensor:
     """(V, 3) x, y, z centres in metres of the voxels of a backbone level (any stride)."""
     d, h, w = grid.shape
     stride = torch.tensor([w / x.shape[2], h / x.shape[1], d / x.shape[0]])  # (3,) x, y, z
-    zyx = x.coords.to(torch.float32)
-    return (torch.flip(zyx, dims=[1]) + 0.5) * grid.size() * stride + grid.lower()
+    return grid.centres(x.coords, stride)
 
 
 class VoxelSetAbstraction(nn.Module):

@@ -17,6 +17,11 @@ table ``(V_out, K)`` holds, per output voxel and kernel offset, the input row or
 
 Tables and index grids are cached on the tensor (``cache``) so the layers of one resolution
 share them; every function accepts V = 0 and exports with the dynamo ONNX exporter.
+
+Coordinate arithmetic of the tables runs on axis-major ``(3, K, V)`` queries (axis, kernel
+offset, voxel), so that onnxruntime broadcasts over long rows (see ``models/voxelize.py``),
+and rows are picked with ``index_select`` (ONNX ``Gather``) rather than advanced indexing
+(``GatherND``, row by row).
 """
 from __future__ import annotations
 
@@ -28,6 +33,7 @@ import torch
 from torch import Tensor, nn
 
 from models.vfe import RowBatchNorm
+from models.voxelize import all_axes, distinct
 
 
 def _triple(v) -> tuple[int, int, int]:
@@ -44,6 +50,21 @@ def kernel_offsets(kernel) -> Tensor:
     """(K, 3) int64 offsets (dz, dy, dx) in 0..k-1, z slowest (the weight's K order)."""
     k = _triple(kernel)
     return torch.tensor(list(itertools.product(*(range(n) for n in k))), dtype=torch.long)
+
+
+def _axis_column(v) -> Tensor:
+    """(3, 1, 1) int64 per-axis constant (z, y, x) for axis-major (3, K, V) queries."""
+    return torch.tensor(_triple(v), dtype=torch.long)[:, None, None]
+
+
+def _offset_rows(kernel) -> Tensor:
+    """(3, K, 1) kernel offsets, axis-major."""
+    return kernel_offsets(kernel).T[:, :, None]
+
+
+def take_rows(t: Tensor, index: Tensor) -> Tensor:
+    """``t[index]`` for an integer index of any shape, as one ``index_select`` (ONNX Gather)."""
+    return torch.index_select(t, 0, index.reshape(-1)).reshape(*index.shape, *t.shape[1:])
 
 
 @dataclass
@@ -72,6 +93,12 @@ def linear_index(coords: Tensor, shape) -> Tensor:
     return (coords[..., 0] * h + coords[..., 1]) * w + coords[..., 2]
 
 
+def _linear_axis_major(query: Tensor, shape) -> Tensor:
+    """(K, V) int64 linear index of axis-major coords (3, K, V)."""
+    _, h, w = shape
+    return (query[0] * h + query[1]) * w + query[2]
+
+
 def build_index_grid(coords: Tensor, shape) -> Tensor:
     """(D*H*W,) int64 grid with the row index of each active voxel, V elsewhere."""
     v = coords.shape[0]
@@ -79,35 +106,35 @@ def build_index_grid(coords: Tensor, shape) -> Tensor:
     return grid.index_put((linear_index(coords, shape),), torch.arange(v, dtype=torch.long))
 
 
-def lookup(grid: Tensor, shape, query: Tensor, valid: Tensor, missing: int) -> Tensor:
-    """Rows of voxels at query coords (..., 3); ``missing`` where out of bounds or not valid."""
-    hi = torch.tensor(shape, dtype=torch.long)
-    inside = valid & ((query >= 0) & (query < hi)).all(dim=-1)
-    lin = linear_index(torch.minimum(query.clamp(min=0), hi - 1), shape)
-    return torch.where(inside, grid[lin], torch.full_like(lin, missing))
+def lookup(grid: Tensor, shape, query: Tensor, valid: Tensor | None, missing: int) -> Tensor:
+    """(V, K) rows of the voxels at axis-major query coords (3, K, V); ``missing`` where out of
+    bounds or not ``valid`` (K, V)."""
+    hi = torch.tensor(shape, dtype=torch.long)[:, None, None]  # (3, 1, 1)
+    inside = all_axes((query >= 0) & (query < hi))  # (K, V)
+    if valid is not None:
+        inside = inside & valid
+    lin = _linear_axis_major(torch.minimum(query.clamp(min=0), hi - 1), shape)  # (K, V)
+    return torch.where(inside, take_rows(grid, lin), torch.full_like(lin, missing)).T
 
 
 def subm_table(x: SparseTensor, kernel) -> Tensor:
     """(V, K) neighbour table of a submanifold conv (centred kernel), cached per kernel."""
     key = ("subm", _triple(kernel))
     if key not in x.cache:
-        offsets = kernel_offsets(kernel) - torch.tensor(_triple(kernel)) // 2  # (K, 3)
-        query = x.coords[:, None, :] + offsets[None]  # (V, K, 3)
-        valid = torch.ones(query.shape[:2], dtype=torch.bool)
-        x.cache[key] = lookup(x.index_grid(), x.shape, query, valid, x.coords.shape[0])
+        query = x.coords.T[:, None, :] + _offset_rows(kernel) - _axis_column(kernel) // 2  # (3, K, V)
+        x.cache[key] = lookup(x.index_grid(), x.shape, query, None, x.coords.shape[0])
     return x.cache[key]
 
 
 def strided_out_coords(x: SparseTensor, kernel, stride, padding) -> tuple[Tensor, tuple]:
     """(V_out, 3) active output coords of a strided conv, sorted by linear index; out shape."""
-    k, s, p = (torch.tensor(_triple(a)) for a in (kernel, stride, padding))
+    s, p = _axis_column(stride), _axis_column(padding)
     shape = out_shape(x.shape, kernel, stride, padding)
-    cand = x.coords[:, None, :] + p - kernel_offsets(kernel)[None]  # (V, K, 3) = out * s
-    hi = torch.tensor(shape, dtype=torch.long)
-    ok = ((cand % s) == 0).all(-1) & ((cand >= 0) & (cand < hi * s)).all(-1)  # (V, K)
-    lin = linear_index(torch.div(cand, s, rounding_mode="floor")[ok], shape)  # (M,)
-    uniq = torch.unique(lin)  # (V_out,)
-    torch._check(uniq.shape[0] <= math.prod(shape))  # keeps export's size bounds within int64
+    cand = x.coords.T[:, None, :] + p - _offset_rows(kernel)  # (3, K, V) = out * s
+    hi = _axis_column(shape)
+    ok = all_axes(((cand % s) == 0) & (cand >= 0) & (cand < hi * s))  # (K, V)
+    lin = _linear_axis_major(torch.div(cand, s, rounding_mode="floor"), shape)[ok]  # (M,)
+    uniq = distinct(lin, math.prod(shape))  # (V_out,) ascending
     _, h, w = shape
     coords = torch.stack([uniq // (h * w), (uniq // w) % h, uniq % w], dim=1)
     return coords, shape
@@ -115,10 +142,9 @@ def strided_out_coords(x: SparseTensor, kernel, stride, padding) -> tuple[Tensor
 
 def strided_table(x: SparseTensor, out_coords: Tensor, kernel, stride, padding) -> Tensor:
     """(V_out, K) input rows feeding each output voxel: in = out * s - p + k."""
-    s, p = torch.tensor(_triple(stride)), torch.tensor(_triple(padding))
-    query = out_coords[:, None, :] * s - p + kernel_offsets(kernel)[None]  # (V_out, K, 3)
-    valid = torch.ones(query.shape[:2], dtype=torch.bool)
-    return lookup(x.index_grid(), x.shape, query, valid, x.coords.shape[0])
+    s, p = _axis_column(stride), _axis_column(padding)
+    query = out_coords.T[:, None, :] * s - p + _offset_rows(kernel)  # (3, K, V_out)
+    return lookup(x.index_grid(), x.shape, query, None, x.coords.shape[0])
 
 
 def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padding) -> Tensor:
@@ -126,9 +152,9 @@ def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padd
 
     Fine voxel o and coarse voxel i are linked by kernel offset k when o = i * s - p + k.
     """
-    s, p = torch.tensor(_triple(stride)), torch.tensor(_triple(padding))
-    num = fine.coords[:, None, :] + p - kernel_offsets(kernel)[None]  # (V_fine, K, 3) = i * s
-    valid = ((num % s) == 0).all(-1)
+    s, p = _axis_column(stride), _axis_column(padding)
+    num = fine.coords.T[:, None, :] + p - _offset_rows(kernel)  # (3, K, V_fine) = i * s
+    valid = all_axes((num % s) == 0)  # (K, V_fine)
     query = torch.div(num, s, rounding_mode="floor")
     return lookup(coarse.index_grid(), coarse.shape, query, valid, coarse.coords.shape[0])
 
@@ -137,7 +163,7 @@ def gather_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
     """(V_out, C_out) = sum_k features[table[:, k]] @ weight[k]; table value V_in = zero row."""
     k, c_in, c_out = weight.shape
     padded = torch.cat([features, features.new_zeros(1, c_in)], dim=0)  # (V_in + 1, C_in)
-    gathered = padded[table]  # (V_out, K, C_in)
+    gathered = take_rows(padded, table)  # (V_out, K, C_in)
     return gathered.reshape(-1, k * c_in) @ weight.reshape(k * c_in, c_out)
 
 

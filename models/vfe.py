@@ -96,9 +96,7 @@ class PillarVFE(nn.Module):
         """(P, 10) decorated points."""
         pts, p2v = voxels.points, voxels.point2voxel
         mean = scatter_mean(pts[:, :3], p2v, voxels.num_voxels)  # (V, 3) metres
-        zyx = voxels.coords[p2v].float()  # (P, 3) voxel indices
-        xyz_idx = torch.flip(zyx, dims=[1])  # (P, 3) x, y, z indices
-        centre = (xyz_idx + 0.5) * self.grid.size() + self.grid.lower()  # (P, 3) metres
+        centre = self.grid.centres(voxels.coords)[p2v]  # (P, 3) metres
         return torch.cat([pts[:, :4], pts[:, :3] - mean[p2v], pts[:, :3] - centre], dim=1)
 
     def forward(self, voxels: Voxels) -> Tensor:

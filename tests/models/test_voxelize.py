@@ -41,6 +41,19 @@ def test_range_mask_matches_numpy():
     assert filter_range(pts, GRID.pc_range).shape[0] == ref.sum()
 
 
+def test_grid_centres_match_numpy():
+    rng = np.random.default_rng(7)
+    d, h, w = GRID.shape
+    coords = np.c_[rng.integers(0, d, 50), rng.integers(0, h, 50), rng.integers(0, w, 50)]  # (z, y, x)
+    lo, size = np.array(GRID.pc_range[:3]), np.array(GRID.voxel_size)
+    for stride in (1.0, 2.0, np.array([2.0, 4.0, 1.0])):
+        ref = (coords[:, ::-1] + 0.5) * size * stride + lo
+        got = GRID.centres(torch.from_numpy(coords), torch.as_tensor(stride, dtype=torch.float32))
+        assert got.shape == (50, 3)
+        np.testing.assert_allclose(got.numpy(), ref, rtol=1e-6, atol=1e-5)
+    assert GRID.centres(torch.zeros((0, 3), dtype=torch.long)).shape == (0, 3)
+
+
 def test_dynamic_voxelize_matches_loop():
     rng = np.random.default_rng(1)
     for n in (0, 1, 300, 2000):
