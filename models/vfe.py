@@ -45,15 +45,18 @@ def scatter_max_nonneg(values: Tensor, index: Tensor, n: int) -> Tensor:
 def voxel_max_nonneg(values: Tensor, voxels: Voxels) -> Tensor:
     """(V, C) per-voxel maxima of NON-NEGATIVE point values (P, C).
 
-    With hard voxelization the points are first placed in a dense (V, T, C) tensor by their
-    slot (ScatterND of whole rows) and reduced over T: much faster in onnxruntime than a
-    per-element ScatterElements max; dynamic voxels fall back to :func:`scatter_max_nonneg`.
+    With hard voxelization the points are first laid out as a dense (V, T, C) tensor by their
+    slot and reduced over T: a slot -> point table (scatter of P integers), then one row
+    gather, which onnxruntime runs much faster than a per-element ScatterElements max or a
+    ScatterND of whole rows; dynamic voxels fall back to :func:`scatter_max_nonneg`.
     """
     if voxels.slot is None:
         return scatter_max_nonneg(values, voxels.point2voxel, voxels.num_voxels)
-    t, c = voxels.max_points, values.shape[1]
-    dense = values.new_zeros(voxels.num_voxels * t, c)
-    dense = dense.index_put((voxels.point2voxel * t + voxels.slot,), values)  # (V * T, C)
+    t, (p, c) = voxels.max_points, values.shape
+    rows = torch.full((voxels.num_voxels * t,), p, dtype=torch.long)  # (V * T,) p = empty slot
+    rows = rows.scatter(0, voxels.point2voxel * t + voxels.slot, torch.arange(p, dtype=torch.long))
+    padded = torch.cat([values, values.new_zeros(1, c)])  # (P + 1, C)
+    dense = torch.index_select(padded, 0, rows)  # (V * T, C)
     return dense.reshape(-1, t, c).amax(dim=1)
 
 
