@@ -28,7 +28,7 @@ from models.second import TINY as SECOND_TINY
 from models.second import SECONDConfig
 from models.single_stage import frame_targets
 from models.sparse import SparseTensor, height_compress
-from models.vfe import RowBatchNorm, scatter_max_nonneg, scatter_mean
+from models.vfe import RowBatchNorm, decorate_points, scatter_max_nonneg
 from models.voxel_backbone import VoxelBackbone, VoxelBackboneConfig, output_shape
 from models.voxelize import Grid, Voxels, dynamic_voxelize
 
@@ -99,11 +99,8 @@ class FusionVFE(nn.Module):
         self.out_channels = cfg.fusion_out
 
     def decorate(self, voxels: Voxels) -> Tensor:
-        """(P, 10) decorated points."""
-        pts, p2v = voxels.points, voxels.point2voxel
-        mean = scatter_mean(pts[:, :3], p2v, voxels.num_voxels)  # (V, 3) metres
-        centre = self.grid.centres(voxels.coords)[p2v]  # (P, 3) metres
-        return torch.cat([pts[:, :4], pts[:, :3] - mean[p2v], pts[:, :3] - centre], dim=1)
+        """(P, 10) decorated points (as the pillar VFE's)."""
+        return decorate_points(voxels, self.grid)
 
     def forward(self, voxels: Voxels, img_feats: list[Tensor], lidar2img: Tensor, image_hw: tuple) -> Tensor:
         """-> (V, fusion_out) voxel features."""

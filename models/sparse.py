@@ -33,7 +33,7 @@ import torch
 from torch import Tensor, nn
 
 from models.vfe import RowBatchNorm
-from models.voxelize import all_axes, distinct
+from models.voxelize import all_axes, unique_cells
 
 
 def _triple(v) -> tuple[int, int, int]:
@@ -87,16 +87,15 @@ class SparseTensor:
         return self.cache["grid"]
 
 
-def linear_index(coords: Tensor, shape) -> Tensor:
-    """(M,) int64 z * H * W + y * W + x."""
-    _, h, w = shape
-    return (coords[..., 0] * h + coords[..., 1]) * w + coords[..., 2]
-
-
 def _linear_axis_major(query: Tensor, shape) -> Tensor:
-    """(K, V) int64 linear index of axis-major coords (3, K, V)."""
+    """(...) int64 linear index z * H * W + y * W + x of axis-major coords (3, ...)."""
     _, h, w = shape
     return (query[0] * h + query[1]) * w + query[2]
+
+
+def linear_index(coords: Tensor, shape) -> Tensor:
+    """(...) int64 z * H * W + y * W + x of coords (..., 3)."""
+    return _linear_axis_major(coords.movedim(-1, 0), shape)
 
 
 def build_index_grid(coords: Tensor, shape) -> Tensor:
@@ -109,7 +108,7 @@ def build_index_grid(coords: Tensor, shape) -> Tensor:
 def lookup(grid: Tensor, shape, query: Tensor, valid: Tensor | None, missing: int) -> Tensor:
     """(V, K) rows of the voxels at axis-major query coords (3, K, V); ``missing`` where out of
     bounds or not ``valid`` (K, V)."""
-    hi = torch.tensor(shape, dtype=torch.long)[:, None, None]  # (3, 1, 1)
+    hi = _axis_column(shape)  # (3, 1, 1)
     inside = all_axes((query >= 0) & (query < hi))  # (K, V)
     if valid is not None:
         inside = inside & valid
@@ -134,7 +133,7 @@ def strided_out_coords(x: SparseTensor, kernel, stride, padding) -> tuple[Tensor
     hi = _axis_column(shape)
     ok = all_axes(((cand % s) == 0) & (cand >= 0) & (cand < hi * s))  # (K, V)
     lin = _linear_axis_major(torch.div(cand, s, rounding_mode="floor"), shape)[ok]  # (M,)
-    uniq = distinct(lin, math.prod(shape))  # (V_out,) ascending
+    uniq = unique_cells(lin, math.prod(shape))  # (V_out,) ascending
     _, h, w = shape
     coords = torch.stack([uniq // (h * w), (uniq // w) % h, uniq % w], dim=1)
     return coords, shape

@@ -80,6 +80,15 @@ class MeanVFE(nn.Module):
         return scatter_mean(voxels.points[:, :4], voxels.point2voxel, voxels.num_voxels)  # (V, 4)
 
 
+def decorate_points(voxels: Voxels, grid: Grid) -> Tensor:
+    """(P, 10) points decorated as PointPillars does: ``[x, y, z, i, x - x_m, y - y_m, z - z_m,
+    x - x_c, y - y_c, z - z_c]`` (``_m``: mean of the voxel's points, ``_c``: the voxel centre)."""
+    pts, p2v = voxels.points, voxels.point2voxel
+    mean = scatter_mean(pts[:, :3], p2v, voxels.num_voxels)  # (V, 3) metres
+    centre = grid.centres(voxels.coords)[p2v]  # (P, 3) metres
+    return torch.cat([pts[:, :4], pts[:, :3] - mean[p2v], pts[:, :3] - centre], dim=1)
+
+
 class PillarVFE(nn.Module):
     """PointPillars' pillar feature net.
 
@@ -97,10 +106,7 @@ class PillarVFE(nn.Module):
 
     def decorate(self, voxels: Voxels) -> Tensor:
         """(P, 10) decorated points."""
-        pts, p2v = voxels.points, voxels.point2voxel
-        mean = scatter_mean(pts[:, :3], p2v, voxels.num_voxels)  # (V, 3) metres
-        centre = self.grid.centres(voxels.coords)[p2v]  # (P, 3) metres
-        return torch.cat([pts[:, :4], pts[:, :3] - mean[p2v], pts[:, :3] - centre], dim=1)
+        return decorate_points(voxels, self.grid)
 
     def forward(self, voxels: Voxels) -> Tensor:
         feats = torch.relu(self.norm(self.linear(self.decorate(voxels))))  # (P, C)

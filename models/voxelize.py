@@ -109,28 +109,21 @@ def _linear_index(points: Tensor, grid: Grid) -> Tensor:
 TABLE_CELLS = 1 << 22  # largest grid (voxels) grouped through a dense table (32 MB of int64)
 
 
-def group_by_voxel(linear: Tensor, cells: int) -> tuple[Tensor, Tensor]:
-    """``torch.unique(linear, return_inverse=True)`` for linear indices in ``[0, cells)``:
-    the sorted distinct indices (V,) and each entry's position among them (P,)."""
+def unique_cells(linear: Tensor, cells: int, return_inverse: bool = False):
+    """``torch.unique(linear, return_inverse=...)`` for linear indices in ``[0, cells)``: the
+    sorted distinct indices (V,) and, if asked, each entry's position among them (P,)."""
     if cells > TABLE_CELLS:
-        uniq, inverse = torch.unique(linear, return_inverse=True)
+        out = torch.unique(linear, return_inverse=return_inverse)
+        uniq = out[0] if return_inverse else out
     else:
         occupied = torch.zeros(cells, dtype=torch.long).scatter(0, linear, torch.ones_like(linear))  # (cells,)
         uniq = torch.nonzero(occupied)[:, 0]  # (V,) ascending
-        inverse = (torch.cumsum(occupied, dim=0) - 1)[linear]  # (P,) rank of the entry's cell
+        if return_inverse:
+            out = uniq, (torch.cumsum(occupied, dim=0) - 1)[linear]  # (P,) rank of the entry's cell
+        else:
+            out = uniq
     torch._check(uniq.shape[0] <= cells)  # keeps export's size bounds in int64
-    return uniq, inverse
-
-
-def distinct(linear: Tensor, cells: int) -> Tensor:
-    """``torch.unique(linear)`` (sorted) for linear indices in ``[0, cells)``."""
-    if cells > TABLE_CELLS:
-        uniq = torch.unique(linear)
-    else:
-        occupied = torch.zeros(cells, dtype=torch.long).scatter(0, linear, torch.ones_like(linear))
-        uniq = torch.nonzero(occupied)[:, 0]
-    torch._check(uniq.shape[0] <= cells)  # keeps export's size bounds in int64
-    return uniq
+    return out
 
 
 def _coords_of(linear: Tensor, shape: tuple[int, int, int]) -> Tensor:
@@ -143,7 +136,7 @@ def dynamic_voxelize(points: Tensor, grid: Grid) -> Voxels:
     """All in-range points, grouped into voxels (sorted by linear index)."""
     pts = filter_range(points, grid.pc_range)  # (P, 4)
     linear = _linear_index(pts, grid)  # (P,)
-    uniq, inverse = group_by_voxel(linear, math.prod(grid.shape))  # (V,), (P,)
+    uniq, inverse = unique_cells(linear, math.prod(grid.shape), return_inverse=True)  # (V,), (P,)
     return Voxels(pts, inverse, _coords_of(uniq, grid.shape), grid.shape)
 
 
@@ -166,7 +159,7 @@ def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) 
     """
     pts = filter_range(points, grid.pc_range)  # (P, 4)
     linear = _linear_index(pts, grid)  # (P,)
-    uniq, inverse = group_by_voxel(linear, math.prod(grid.shape))  # (V,), (P,)
+    uniq, inverse = unique_cells(linear, math.prod(grid.shape), return_inverse=True)  # (V,), (P,)
     v, p = uniq.shape[0], pts.shape[0]
     arange = torch.arange(p, dtype=torch.long)
     first = torch.full((v,), p, dtype=torch.long).scatter_reduce(0, inverse, arange, "amin")  # (V,)

@@ -1,7 +1,8 @@
 import numpy as np
 import torch
 
-from models.voxelize import Grid, dynamic_voxelize, filter_range, hard_voxelize, range_mask
+import models.voxelize as voxelize
+from models.voxelize import Grid, dynamic_voxelize, filter_range, hard_voxelize, range_mask, unique_cells
 
 GRID = Grid((0.0, -4.0, -2.0, 8.0, 4.0, 1.0), (0.5, 0.5, 0.75))
 
@@ -39,6 +40,18 @@ def test_range_mask_matches_numpy():
     ref = ((pts.numpy()[:, :3] >= lo) & (pts.numpy()[:, :3] < hi)).all(1)
     assert np.array_equal(range_mask(pts, GRID.pc_range).numpy(), ref)
     assert filter_range(pts, GRID.pc_range).shape[0] == ref.sum()
+
+
+def test_unique_cells_matches_torch_unique(monkeypatch):
+    rng = np.random.default_rng(3)
+    for table_cells in (voxelize.TABLE_CELLS, 0):  # the occupancy table, then the Unique fallback
+        monkeypatch.setattr(voxelize, "TABLE_CELLS", table_cells)
+        for n, cells in ((0, 10), (1, 10), (500, 64), (3000, 100_000)):
+            linear = torch.from_numpy(rng.integers(0, cells, n))
+            ref_uniq, ref_inverse = np.unique(linear.numpy(), return_inverse=True)
+            uniq, inverse = unique_cells(linear, cells, return_inverse=True)
+            assert np.array_equal(uniq.numpy(), ref_uniq) and np.array_equal(inverse.numpy(), ref_inverse)
+            assert np.array_equal(unique_cells(linear, cells).numpy(), ref_uniq)
 
 
 def test_grid_centres_match_numpy():
