@@ -18,7 +18,6 @@ ONNX Loop when exported), ball query and set abstraction.
 """
 from __future__ import annotations
 
-import math
 from typing import Sequence
 
 import torch
@@ -151,9 +150,13 @@ def roi_ball_query(xyz: Tensor, centres: Tensor, radius: float, nsample: int) ->
 
 def roi_gather(values: Tensor, idx: Tensor) -> Tensor:
     """values (K, S, C), idx (K, ...) slot indices -> (K, ..., C)."""
-    k, c = values.shape[0], values.shape[-1]
-    flat = idx.reshape(k, math.prod(idx.shape[1:]), 1).expand(-1, -1, c)  # (K, P, C)
-    return torch.gather(values, 1, flat).reshape(*idx.shape, c)
+    k, s, c = values.shape
+    # rows of the flattened (K * S, C) values: one Gather of whole rows in ONNX (a
+    # GatherElements over (K, P, C) gathers element by element, and OpenVINO rejects it when
+    # the exporter folds a channel slice of ``values`` into it)
+    offset = (torch.arange(k, device=idx.device) * s).reshape(k, *([1] * (idx.dim() - 1)))
+    rows = (idx + offset).reshape(-1)  # (K * P,)
+    return values.reshape(k * s, c).index_select(0, rows).reshape(*idx.shape, c)
 
 
 class RoISetAbstraction(nn.Module):
