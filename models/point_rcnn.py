@@ -42,6 +42,7 @@ from models.voxelize import range_mask
 class PointRCNNConfig:
     pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
     num_points: int = 4096  # in-range points thinned to this count for every later stage
+    far_depth: float = 40.0  # m: points this far are all kept by the thinning (OpenPCDet)
     sa_npoints: tuple[int, ...] = (512, 128, 32, 8)
     sa_radii: tuple[tuple[float, ...], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
     sa_nsamples: tuple[tuple[int, ...], ...] = ((16, 32), (16, 32), (16, 32), (16, 32))
@@ -261,18 +262,32 @@ class PointRCNN(Detector):
         """(N, 4) -> (num_points, 4) the in-range points thinned to num_points, and a bool
         scalar tensor: some point is in range.
 
-        Evenly spaced indices over the in-range points: LiDAR order runs along the rings, so
-        this is a uniform thinning, like the random sampling to a fixed count of OpenPCDet's
-        PointRCNN, but deterministic and with a static output shape. A sparser cloud repeats
+        OpenPCDet's PointRCNN sampling, deterministic and with a static output shape: every
+        point at least ``far_depth`` from the sensor is kept (a far car has few points to
+        lose), the near points are thinned to fill the rest. Thinning takes evenly spaced
+        indices; LiDAR order runs along the rings, so this is a uniform thinning. More far
+        points than num_points: the far points alone are thinned. A sparser cloud repeats
         points (repeats never win a later farthest point sampling step); an empty one gives
         zero points.
         """
         inside = range_mask(points, self.cfg.pc_range)  # (N,)
-        pts = torch.cat([points[inside], points.new_zeros(1, 4)])  # (n + 1, 4): row n read only if n == 0
-        step = (pts.shape[0] - 1) / self.cfg.num_points
-        idx = torch.arange(self.cfg.num_points, device=pts.device, dtype=torch.float32) * step
+        depth2 = points[:, 0] ** 2 + points[:, 1] ** 2 + points[:, 2] ** 2  # (N,) m^2
+        far = depth2 >= self.cfg.far_depth ** 2
+        near_mask, far_mask = inside & ~far, inside & far
+        rows = [points.index_select(0, torch.nonzero(m)[:, 0]) for m in (far_mask, near_mask)]
+        # far points, near points, one zero row (read only when nothing is in range)
+        pts = torch.cat([*rows, points.new_zeros(1, 4)])
+        n_far, n_near = far_mask.sum(), near_mask.sum()  # () int64
+        total = self.cfg.num_points
+        # slots taken by far points: all of them if they fit and near points fill the rest
+        k_far = torch.where(n_near > 0, torch.clamp(n_far, max=total), torch.full_like(n_far, total))
+        k_near = total - k_far
+        j = torch.arange(total, device=points.device, dtype=torch.long)  # (num_points,)
+        from_far = torch.div(j * n_far, k_far.clamp(min=1), rounding_mode="floor")
+        from_near = n_far + torch.div((j - k_far) * n_near, k_near.clamp(min=1), rounding_mode="floor")
+        idx = torch.where(j < k_far, from_far, from_near)  # (num_points,) rows of pts
         # sum, not any(): ONNX ReduceMax over zero elements does not give False
-        return pts[torch.floor(idx).long()], inside.sum() > 0  # (num_points, 4), ()
+        return pts.index_select(0, idx), (n_far + n_near) > 0  # (num_points, 4), ()
 
     def stage_one(self, pts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """pts (n0, 4) -> features (n0, C), seg logit (n0,), box head output (n0, B)."""

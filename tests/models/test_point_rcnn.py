@@ -118,6 +118,35 @@ def tiny_scene(rng, n_cars=2, frame_id="000000"):
     return Sample(frame_id, points, boxes, np.array(["Car"] * len(boxes)))
 
 
+def numpy_points_of_interest(points, cfg):
+    """OpenPCDet's near/far sampling with evenly spaced picks instead of random ones."""
+    lo, hi = np.array(cfg.pc_range[:3]), np.array(cfg.pc_range[3:])
+    inside = np.all((points[:, :3] >= lo) & (points[:, :3] < hi), axis=1)
+    far = np.linalg.norm(points[:, :3].astype(np.float64), axis=1) >= cfg.far_depth
+    far_pts, near_pts = points[inside & far], points[inside & ~far]
+    n = cfg.num_points
+    if len(far_pts) + len(near_pts) == 0:
+        return np.zeros((n, 4), np.float32)
+    if len(near_pts) == 0 or len(far_pts) >= n:
+        return far_pts[[j * len(far_pts) // n for j in range(n)]]
+    k = n - len(far_pts)
+    return np.concatenate([far_pts, near_pts[[j * len(near_pts) // k for j in range(k)]]])
+
+
+@pytest.mark.parametrize("n_near, n_far", [(900, 100), (50, 30), (0, 70), (20, 600), (0, 0), (300, 0)])
+def test_points_of_interest_matches_numpy(n_near, n_far):
+    rng = np.random.default_rng(n_near + 7 * n_far)
+    cfg = CONFIGS["tiny"]  # 256 points
+    near = rng.uniform([0, -25, -2.5], [30, 25, 1.5], (n_near, 3))
+    far = rng.uniform([45, -30, -2.5], [79, 30, 1.5], (n_far, 3))
+    outside = rng.uniform([-50, 40, -2], [-1, 60, 1], (40, 3))
+    xyz = rng.permutation(np.concatenate([near, far, outside]))
+    points = np.c_[xyz, rng.uniform(0, 1, len(xyz))].astype(np.float32)
+    got, nonempty = PointRCNN(cfg).points_of_interest(torch.from_numpy(points))
+    np.testing.assert_array_equal(got.numpy(), numpy_points_of_interest(points, cfg))
+    assert bool(nonempty) == (n_near + n_far > 0)
+
+
 def test_build_rejects_unknown_profile():
     with pytest.raises(ValueError, match="unknown profile"):
         build("huge")
@@ -165,6 +194,7 @@ def test_onnx_matches_torch(tmp_path):
     export_onnx(model, path, {"sotif.profile": "tiny"})
     clouds = [tiny_scene(rng).points, tiny_scene(rng, 1).points[::7],
               np.concatenate([rng.uniform([0, -20, -3], [80, 20, 2], (500, 3)), rng.uniform(0, 1, (500, 1))], 1),
+              np.c_[rng.uniform([45, -20, -2], [79, 20, 1], (90, 3)), rng.uniform(0, 1, (90, 1))],  # far only
               np.zeros((3, 4)), np.zeros((0, 4))]
     for cloud in clouds:
         cloud = cloud.astype(np.float32)
