@@ -159,11 +159,34 @@ def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padd
 
 
 def gather_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
-    """(V_out, C_out) = sum_k features[table[:, k]] @ weight[k]; table value V_in = zero row."""
+    """(V_out, C_out) = sum_k features[table[:, k]] @ weight[k]; table value V_in = zero row.
+
+    Inference (and export) gathers the whole (V_out, K, C_in) table for one GEMM; with autograd
+    on, :func:`pair_gemm` works on the occupied entries only, which the backward pass repays.
+    """
+    if torch.is_grad_enabled() and not (torch.compiler.is_exporting() or torch.compiler.is_compiling()):
+        return pair_gemm(features, table, weight)
     k, c_in, c_out = weight.shape
     padded = torch.cat([features, features.new_zeros(1, c_in)], dim=0)  # (V_in + 1, C_in)
     gathered = take_rows(padded, table)  # (V_out, K, C_in)
     return gathered.reshape(-1, k * c_in) @ weight.reshape(k * c_in, c_out)
+
+
+def pair_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
+    """:func:`gather_gemm` over the occupied table entries only (spconv's rule-book form).
+
+    A LiDAR surface fills a quarter to a half of a 3x3x3 neighbourhood; the one-GEMM form also
+    multiplies, and back-propagates through, the zero rows of the empty ones. Here the
+    (output row, input row) pairs of each kernel offset get one GEMM each, and the products
+    are summed into their output rows.
+    """
+    k, c_in, c_out = weight.shape
+    offset, out_row = torch.nonzero((table != features.shape[0]).T, as_tuple=True)  # (M,) grouped by offset
+    in_row = table[out_row, offset]  # (M,)
+    counts = torch.bincount(offset, minlength=k).tolist()
+    gathered = torch.split(features.index_select(0, in_row), counts)  # K x (M_k, C_in)
+    products = torch.cat([rows @ weight[i] for i, rows in enumerate(gathered)])  # (M, C_out)
+    return features.new_zeros(table.shape[0], c_out).index_add(0, out_row, products)
 
 
 class _SparseConvBase(nn.Module):

@@ -1,9 +1,15 @@
+import contextlib
+
 import numpy as np
+import pytest
 import torch
 import torch.nn.functional as F
 
-from models.sparse import (SparseConv3d, SparseInverseConv3d, SparseTensor, SubMConv3d, height_compress,
-                           out_shape, to_dense)
+from models.sparse import (SparseConv3d, SparseInverseConv3d, SparseTensor, SubMConv3d, gather_gemm, height_compress,
+                           out_shape, pair_gemm, to_dense)
+
+# the convs run the one-GEMM form without autograd and the pair form with it: both against the references
+MODES = pytest.mark.parametrize("mode", [torch.no_grad, contextlib.nullcontext], ids=["inference", "autograd"])
 
 SHAPE = (6, 9, 11)
 
@@ -25,23 +31,27 @@ def _at(dense, coords):
     return dense[:, coords[:, 0], coords[:, 1], coords[:, 2]].T  # (V, C)
 
 
-def test_subm_conv_matches_dense_conv3d():
+@MODES
+def test_subm_conv_matches_dense_conv3d(mode):
     rng = np.random.default_rng(0)
     for n in (0, 1, 40, 300):
         x = _sparse(rng, n, 3)
         conv = SubMConv3d(3, 5)
-        y = conv(x)
+        with mode():
+            y = conv(x)
         ref = F.conv3d(to_dense(x)[None], _dense_weight(conv), padding=1)[0]
         assert torch.equal(y.coords, x.coords)
         torch.testing.assert_close(y.features, _at(ref, x.coords), rtol=1e-4, atol=1e-5)
 
 
-def test_strided_conv_matches_dense_conv3d():
+@MODES
+def test_strided_conv_matches_dense_conv3d(mode):
     rng = np.random.default_rng(1)
     for kernel, stride, pad in ((3, 2, 1), ((3, 1, 1), (2, 1, 1), 0), (3, 2, (0, 1, 1))):
         x = _sparse(rng, 120, 4)
         conv = SparseConv3d(4, 6, kernel, stride, pad)
-        y = conv(x)
+        with mode():
+            y = conv(x)
         occ = F.conv3d((to_dense(x).abs().sum(0, keepdim=True) > 0).float()[None],
                        torch.ones(1, 1, *conv.kernel), stride=stride, padding=pad)[0, 0]
         assert y.shape == out_shape(SHAPE, kernel, stride, pad) == tuple(occ.shape)
@@ -51,18 +61,53 @@ def test_strided_conv_matches_dense_conv3d():
         torch.testing.assert_close(y.features, _at(ref, y.coords), rtol=1e-4, atol=1e-5)
 
 
-def test_inverse_conv_matches_conv_transpose3d():
+@MODES
+def test_inverse_conv_matches_conv_transpose3d(mode):
     rng = np.random.default_rng(2)
     fine = _sparse(rng, 150, 2)
     down = SparseConv3d(2, 4, 3, 2, 1)(fine)
     up = SparseInverseConv3d(4, 3, 3, 2, 1)
-    y = up(down, fine)
+    with mode():
+        y = up(down, fine)
     assert torch.equal(y.coords, fine.coords)
     w = up.weight.detach().reshape(3, 3, 3, 4, 3).permute(3, 4, 0, 1, 2)  # (Cin, Cout, k, k, k)
     natural = [(n - 1) * 2 - 2 + 3 for n in down.shape]  # conv_transpose3d's output size
     extra = tuple(f - n for f, n in zip(SHAPE, natural))  # output_padding back to the fine grid
     dense = F.conv_transpose3d(to_dense(down)[None], w, stride=2, padding=1, output_padding=extra)[0]
     torch.testing.assert_close(y.features, _at(dense, fine.coords), rtol=1e-4, atol=1e-5)
+
+
+def test_pair_gemm_matches_gather_gemm_and_its_gradients():
+    rng = np.random.default_rng(4)
+    for v_in, v_out, k in ((0, 5, 27), (30, 0, 27), (200, 150, 27), (80, 60, 3)):
+        table = torch.from_numpy(np.where(rng.uniform(size=(v_out, k)) < 0.3, rng.integers(0, max(v_in, 1), (v_out, k)),
+                                          v_in))  # ~30 % occupied, V_in = empty
+        feats = torch.from_numpy(rng.standard_normal((v_in, 6)).astype(np.float32)).requires_grad_()
+        weight = torch.from_numpy(rng.standard_normal((k, 6, 4)).astype(np.float32)).requires_grad_()
+        grad_out = torch.from_numpy(rng.standard_normal((v_out, 4)).astype(np.float32))
+        results = []
+        for fn in (pair_gemm, lambda f, t, w: _one_gemm(f, t, w)):
+            out = fn(feats, table, weight)
+            gf, gw = torch.autograd.grad(out, (feats, weight), grad_out, allow_unused=True)
+            results.append((out.detach(), gf, gw))
+        for got, ref in zip(*results):
+            torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-5)
+
+
+def _one_gemm(features, table, weight):
+    """The one-GEMM form written out with autograd (gather_gemm takes it only without)."""
+    k, c_in, c_out = weight.shape
+    padded = torch.cat([features, features.new_zeros(1, c_in)], dim=0)
+    return padded[table].reshape(-1, k * c_in) @ weight.reshape(k * c_in, c_out)
+
+
+def test_gather_gemm_agrees_with_and_without_autograd():
+    rng = np.random.default_rng(5)
+    table = torch.from_numpy(rng.integers(0, 21, (15, 27)))
+    feats, weight = torch.randn(20, 3), torch.randn(27, 3, 2)
+    with torch.no_grad():
+        torch.testing.assert_close(gather_gemm(feats, table, weight), _one_gemm(feats, table, weight))
+    torch.testing.assert_close(gather_gemm(feats, table, weight), pair_gemm(feats, table, weight))
 
 
 def test_height_compress_stacks_channels_per_height():
