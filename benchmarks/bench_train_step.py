@@ -1,5 +1,5 @@
 """Training-step time of the sparse-conv models: sparse convs as one gather + GEMM over the
-whole (V, 27, C) neighbour table (the inference form) against one GEMM per kernel offset over
+whole (V, 27, C) neighbour table (``models.sparse.table_gemm``, the inference form) against one GEMM per kernel offset over
 the occupied entries (``models.sparse.pair_gemm``, what training uses).
 
     python -m benchmarks.bench_train_step [--data DIR] [--models second,dv_second,parta2,pv_rcnn,mvx_net]
@@ -24,13 +24,6 @@ from harness.augment import AugmentConfig, augment
 from harness.dataset import KittiDataset
 from harness.gt_database import load_or_build
 from models import zoo
-
-
-def one_gemm(features, table, weight):
-    """The inference form of ``gather_gemm``, kept under autograd."""
-    k, c_in, c_out = weight.shape
-    padded = torch.cat([features, features.new_zeros(1, c_in)], dim=0)
-    return sparse.take_rows(padded, table).reshape(-1, k * c_in) @ weight.reshape(k * c_in, c_out)
 
 
 def seconds_per_step(name: str, data: Path, steps: int, form) -> float:
@@ -74,7 +67,7 @@ def main(argv=None) -> int:
             data = generate(Path(tmp) / "train", preset="train", frames=20, seed=0, progress=False)
         print("| model | s/step one GEMM | s/step by offset | speed-up |\n|---|---:|---:|---:|")
         for name in args.models.split(","):
-            full = seconds_per_step(name, Path(data), args.steps, one_gemm)
+            full = seconds_per_step(name, Path(data), args.steps, sparse.table_gemm)
             pairs = seconds_per_step(name, Path(data), args.steps, sparse.pair_gemm)
             print(f"| {name} | {full:.2f} | {pairs:.2f} | {full / pairs:.2f}x |", flush=True)
     return 0

@@ -12,10 +12,17 @@ A detector is an ``nn.Module`` built from a frozen config dataclass. The harness
 """
 from __future__ import annotations
 
+import torch
 from torch import nn
 
 ONE_STAGE_OUTPUTS = ("boxes", "scores")
 TWO_STAGE_OUTPUTS = ("boxes", "scores", "rois", "roi_scores", "rcnn_boxes")
+
+
+def tracing() -> bool:
+    """True while torch.export / torch.compile traces a graph (ONNX export): code that has an
+    eager fast path and a graph form takes the graph form."""
+    return torch.compiler.is_exporting() or torch.compiler.is_compiling()
 
 
 class Detector(nn.Module):

@@ -24,7 +24,9 @@ import torch
 from torch import Tensor, nn
 from torch._higher_order_ops.while_loop import while_loop
 
+from models.base import tracing
 from models.pointnet2 import shared_mlp
+from models.sparse import take_rows
 
 
 def to_canonical(xyz: Tensor, rois: Tensor) -> Tensor:
@@ -129,8 +131,7 @@ def roi_farthest_point_sample(xyz: Tensor, num: int) -> Tensor:
     """
     if num > xyz.shape[1]:
         raise ValueError(f"roi_farthest_point_sample: {num} samples from {xyz.shape[1]} slots")
-    exporting = torch.compiler.is_exporting() or torch.compiler.is_compiling()
-    return _roi_fps_graph(xyz, num) if exporting else _roi_fps_eager(xyz, num)
+    return _roi_fps_graph(xyz, num) if tracing() else _roi_fps_eager(xyz, num)
 
 
 def roi_ball_query(xyz: Tensor, centres: Tensor, radius: float, nsample: int) -> Tensor:
@@ -155,8 +156,7 @@ def roi_gather(values: Tensor, idx: Tensor) -> Tensor:
     # GatherElements over (K, P, C) gathers element by element, and OpenVINO rejects it when
     # the exporter folds a channel slice of ``values`` into it)
     offset = (torch.arange(k, device=idx.device) * s).reshape(k, *([1] * (idx.dim() - 1)))
-    rows = (idx + offset).reshape(-1)  # (K * P,)
-    return values.reshape(k * s, c).index_select(0, rows).reshape(*idx.shape, c)
+    return take_rows(values.reshape(k * s, c), idx + offset)
 
 
 class RoISetAbstraction(nn.Module):

@@ -19,6 +19,8 @@ import torch
 from torch import Tensor, nn
 from torch._higher_order_ops.while_loop import while_loop
 
+from models.base import tracing
+
 _FAR = 1.0e4  # metres; position of the padding points used by three_nn_interpolate
 
 
@@ -65,8 +67,7 @@ def farthest_point_sample(xyz: Tensor, num: int) -> Tensor:
     """
     if xyz.dim() != 2 or xyz.shape[1] != 3:
         raise ValueError(f"farthest_point_sample: xyz must be (N, 3), got {tuple(xyz.shape)}")
-    exporting = torch.compiler.is_exporting() or torch.compiler.is_compiling()
-    idx = _fps_graph(xyz, num) if exporting else _fps_eager(xyz, num)
+    idx = _fps_graph(xyz, num) if tracing() else _fps_eager(xyz, num)
     return idx[: torch.sym_min(xyz.shape[0], num)]
 
 

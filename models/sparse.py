@@ -32,6 +32,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor, nn
 
+from models.base import tracing
 from models.vfe import RowBatchNorm
 from models.voxelize import all_axes, unique_cells
 
@@ -161,11 +162,16 @@ def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padd
 def gather_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
     """(V_out, C_out) = sum_k features[table[:, k]] @ weight[k]; table value V_in = zero row.
 
-    Inference (and export) gathers the whole (V_out, K, C_in) table for one GEMM; with autograd
-    on, :func:`pair_gemm` works on the occupied entries only, which the backward pass repays.
+    Inference (and export) runs :func:`table_gemm`; with autograd on, :func:`pair_gemm` works
+    on the occupied entries only, which the backward pass repays.
     """
-    if torch.is_grad_enabled() and not (torch.compiler.is_exporting() or torch.compiler.is_compiling()):
+    if torch.is_grad_enabled() and not tracing():
         return pair_gemm(features, table, weight)
+    return table_gemm(features, table, weight)
+
+
+def table_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
+    """:func:`gather_gemm` as one gather of the (V_out, K, C_in) table and one GEMM."""
     k, c_in, c_out = weight.shape
     padded = torch.cat([features, features.new_zeros(1, c_in)], dim=0)  # (V_in + 1, C_in)
     gathered = take_rows(padded, table)  # (V_out, K, C_in)
@@ -173,7 +179,7 @@ def gather_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
 
 
 def pair_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
-    """:func:`gather_gemm` over the occupied table entries only (spconv's rule-book form).
+    """:func:`table_gemm` over the occupied table entries only (spconv's rule-book form).
 
     A LiDAR surface fills a quarter to a half of a 3x3x3 neighbourhood; the one-GEMM form also
     multiplies, and back-propagates through, the zero rows of the empty ones. Here the

@@ -6,7 +6,7 @@ import torch
 import torch.nn.functional as F
 
 from models.sparse import (SparseConv3d, SparseInverseConv3d, SparseTensor, SubMConv3d, gather_gemm, height_compress,
-                           out_shape, pair_gemm, to_dense)
+                           out_shape, pair_gemm, table_gemm, to_dense)
 
 # the convs run the one-GEMM form without autograd and the pair form with it: both against the references
 MODES = pytest.mark.parametrize("mode", [torch.no_grad, contextlib.nullcontext], ids=["inference", "autograd"])
@@ -77,7 +77,7 @@ def test_inverse_conv_matches_conv_transpose3d(mode):
     torch.testing.assert_close(y.features, _at(dense, fine.coords), rtol=1e-4, atol=1e-5)
 
 
-def test_pair_gemm_matches_gather_gemm_and_its_gradients():
+def test_pair_gemm_matches_table_gemm_and_its_gradients():
     rng = np.random.default_rng(4)
     for v_in, v_out, k in ((0, 5, 27), (30, 0, 27), (200, 150, 27), (80, 60, 3)):
         table = torch.from_numpy(np.where(rng.uniform(size=(v_out, k)) < 0.3, rng.integers(0, max(v_in, 1), (v_out, k)),
@@ -86,7 +86,7 @@ def test_pair_gemm_matches_gather_gemm_and_its_gradients():
         weight = torch.from_numpy(rng.standard_normal((k, 6, 4)).astype(np.float32)).requires_grad_()
         grad_out = torch.from_numpy(rng.standard_normal((v_out, 4)).astype(np.float32))
         results = []
-        for fn in (pair_gemm, lambda f, t, w: _one_gemm(f, t, w)):
+        for fn in (pair_gemm, table_gemm):
             out = fn(feats, table, weight)
             gf, gw = torch.autograd.grad(out, (feats, weight), grad_out, allow_unused=True)
             results.append((out.detach(), gf, gw))
@@ -94,19 +94,12 @@ def test_pair_gemm_matches_gather_gemm_and_its_gradients():
             torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-5)
 
 
-def _one_gemm(features, table, weight):
-    """The one-GEMM form written out with autograd (gather_gemm takes it only without)."""
-    k, c_in, c_out = weight.shape
-    padded = torch.cat([features, features.new_zeros(1, c_in)], dim=0)
-    return padded[table].reshape(-1, k * c_in) @ weight.reshape(k * c_in, c_out)
-
-
 def test_gather_gemm_agrees_with_and_without_autograd():
     rng = np.random.default_rng(5)
     table = torch.from_numpy(rng.integers(0, 21, (15, 27)))
     feats, weight = torch.randn(20, 3), torch.randn(27, 3, 2)
     with torch.no_grad():
-        torch.testing.assert_close(gather_gemm(feats, table, weight), _one_gemm(feats, table, weight))
+        torch.testing.assert_close(gather_gemm(feats, table, weight), table_gemm(feats, table, weight))
     torch.testing.assert_close(gather_gemm(feats, table, weight), pair_gemm(feats, table, weight))
 
 
