@@ -7,9 +7,9 @@ PROFILE ?= default
 
 .PHONY: run quick test bench clean
 
-$(BIN)/.installed: pyproject.toml
+$(BIN)/.installed: pyproject.toml Makefile
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install -q -e '.[test]'
+	$(BIN)/pip install -q -e '.[test,openvino]'
 	touch $@
 
 run: $(BIN)/.installed
