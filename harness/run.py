@@ -50,8 +50,8 @@ PROFILES = {
 
 # Minutes of each model's train..evaluate stages in the sample default run: the job pool starts
 # the longest first, so that the jobs end together.
-_SAMPLE_MINUTES = {"mvx_net": 34, "point_rcnn": 25, "second": 22, "dv_second": 22, "pv_rcnn": 19, "parta2": 12,
-                   "pointpillars": 12}
+_SAMPLE_MINUTES = {"mvx_net": 24, "point_rcnn": 19, "second": 18, "dv_second": 17, "pv_rcnn": 14, "pointpillars": 10,
+                   "parta2": 8}
 
 
 def _digest(obj) -> str:
