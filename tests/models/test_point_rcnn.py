@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import numpy as np
@@ -118,12 +119,25 @@ def tiny_scene(rng, n_cars=2, frame_id="000000"):
     return Sample(frame_id, points, boxes, np.array(["Car"] * len(boxes)))
 
 
+def numpy_one_per_voxel(points, cfg):
+    """The first point (input order) of every occupied near_voxel cube of the range."""
+    lo = np.array(cfg.pc_range[:3], np.float32)
+    shape = np.round((np.array(cfg.pc_range[3:]) - cfg.pc_range[:3]) / cfg.near_voxel).astype(np.int64)
+    cell = np.floor((points[:, :3] - lo) / np.float32(cfg.near_voxel)).astype(np.int64)
+    cell = np.clip(cell, 0, shape - 1)
+    _, first = np.unique(cell, axis=0, return_index=True)
+    return points[np.sort(first)]
+
+
 def numpy_points_of_interest(points, cfg):
-    """OpenPCDet's near/far sampling with evenly spaced picks instead of random ones."""
+    """OpenPCDet's near/far sampling with evenly spaced picks instead of random ones, near
+    points first reduced to one per near_voxel cube."""
     lo, hi = np.array(cfg.pc_range[:3]), np.array(cfg.pc_range[3:])
     inside = np.all((points[:, :3] >= lo) & (points[:, :3] < hi), axis=1)
     far = np.linalg.norm(points[:, :3].astype(np.float64), axis=1) >= cfg.far_depth
     far_pts, near_pts = points[inside & far], points[inside & ~far]
+    if cfg.near_voxel > 0 and len(near_pts):
+        near_pts = numpy_one_per_voxel(near_pts, cfg)
     n = cfg.num_points
     if len(far_pts) + len(near_pts) == 0:
         return np.zeros((n, 4), np.float32)
@@ -133,11 +147,14 @@ def numpy_points_of_interest(points, cfg):
     return np.concatenate([far_pts, near_pts[[j * len(near_pts) // k for j in range(k)]]])
 
 
+@pytest.mark.parametrize("near_voxel", [0.0, 0.5, 2.0])
 @pytest.mark.parametrize("n_near, n_far", [(900, 100), (50, 30), (0, 70), (20, 600), (0, 0), (300, 0)])
-def test_points_of_interest_matches_numpy(n_near, n_far):
+def test_points_of_interest_matches_numpy(n_near, n_far, near_voxel):
     rng = np.random.default_rng(n_near + 7 * n_far)
-    cfg = CONFIGS["tiny"]  # 256 points
+    cfg = dataclasses.replace(CONFIGS["tiny"], near_voxel=near_voxel)  # 256 points
     near = rng.uniform([0, -25, -2.5], [30, 25, 1.5], (n_near, 3))
+    if n_near:  # half of them a dense surface
+        near[: n_near // 2] = near[0] + rng.uniform(-1.5, 1.5, (n_near // 2, 3))
     far = rng.uniform([45, -30, -2.5], [79, 30, 1.5], (n_far, 3))
     outside = rng.uniform([-50, 40, -2], [-1, 60, 1], (40, 3))
     xyz = rng.permutation(np.concatenate([near, far, outside]))
@@ -145,6 +162,17 @@ def test_points_of_interest_matches_numpy(n_near, n_far):
     got, nonempty = PointRCNN(cfg).points_of_interest(torch.from_numpy(points))
     np.testing.assert_array_equal(got.numpy(), numpy_points_of_interest(points, cfg))
     assert bool(nonempty) == (n_near + n_far > 0)
+
+
+def test_one_per_voxel_thins_a_dense_surface_only():
+    """Near points: a dense patch keeps one point per cube, isolated points all stay."""
+    cfg = dataclasses.replace(CONFIGS["tiny"], near_voxel=0.5)
+    rng = np.random.default_rng(3)
+    patch = np.c_[rng.uniform([10.0, 0.0, 0.0], [10.5, 0.5, 0.5], (200, 3)), np.zeros(200)]  # one cube
+    lone = np.c_[np.arange(12.25, 20.0, 1.0), np.full(8, 3.25), np.full(8, 0.25), np.ones(8)]
+    points = np.concatenate([patch, lone]).astype(np.float32)
+    got = PointRCNN(cfg).one_per_voxel(torch.from_numpy(points)).numpy()
+    np.testing.assert_array_equal(got, points[[0, *range(200, 208)]])
 
 
 def test_build_rejects_unknown_profile():
