@@ -135,7 +135,7 @@ def _checkpoint_meta(ckpt: Path) -> dict:
     params = sum(int(np.prod(v.shape)) for v in state["state_dict"].values() if hasattr(v, "shape")
                  and v.dtype.is_floating_point)
     return {"params": params, "epochs": state.get("epoch"), "final_loss": state.get("final_loss"),
-            "val_ap": state.get("val_ap")}
+            "val_ap": state.get("val_ap"), "train_seconds": state.get("train_seconds")}
 
 
 def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str,
@@ -188,7 +188,8 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
     return {"architecture": info.architecture, "two_stage": info.two_stage, "uses_camera": info.uses_camera,
             "onnx": f"models/{name}.onnx", "size_mb": onnx_path.stat().st_size / 2**20, "params": ck["params"],
             "op_histogram": info.op_histogram,
-            "train": {"seconds": tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"],
+            # the checkpoint's own training time (summed over resumed sessions), else the stage's
+            "train": {"seconds": ck["train_seconds"] or tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"],
                       "val_ap": ck["val_ap"]},
             # latency measured by the probe with the machine to itself; the prediction stage's own
             # figures (all test frames, possibly beside another job) stay under "prediction"

@@ -19,6 +19,8 @@ def test_train_writes_checkpoint_and_resumes(tmp_path, capsys):
     mtime = ckpt.stat().st_mtime_ns
     train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=2, seed=0, progress=False)
     assert ckpt.stat().st_mtime_ns == mtime  # complete: resumed, nothing retrained
+    train("pointpillars", data, tmp_path / "run", profile="tiny", seed=0, progress=False)
+    assert ckpt.stat().st_mtime_ns == mtime  # the profile's 2 epochs: the same training
     model, meta = zoo.load_checkpoint(ckpt)
     assert meta["epoch"] == 2
     again = train("pointpillars", data, tmp_path / "other", profile="tiny", epochs=2, seed=0, progress=False)
@@ -36,3 +38,27 @@ def test_compact_schedule_is_per_model_and_other_profiles_are_shared():
         assert train_config(name, "tiny") == TRAIN_CONFIGS["tiny"]
     with pytest.raises(ValueError, match="unknown profile 'huge'"):
         train_config("second", "huge")
+
+
+def test_resumed_training_sums_its_seconds(tmp_path, monkeypatch):
+    """A run stopped after epoch 1 and resumed reports the time of both sessions."""
+    import harness.train as train_mod
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=1)
+    run_epoch = train_mod._run_epoch
+
+    def stop_at_epoch_1(*args, **kwargs):
+        if args[6] == 1:  # (net, ds, optimizer, scheduler, tcfg, seed, epoch, ...)
+            raise KeyboardInterrupt
+        return run_epoch(*args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "_run_epoch", stop_at_epoch_1)
+    with pytest.raises(KeyboardInterrupt):
+        train("pointpillars", data, tmp_path / "run", profile="tiny", seed=0, progress=False)
+    ckpt = tmp_path / "run" / "checkpoint.pt"
+    state = torch.load(ckpt, weights_only=False)
+    assert state["epoch"] == 1
+    torch.save({**state, "train_seconds": 1000.0}, ckpt)  # a long first session
+    monkeypatch.setattr(train_mod, "_run_epoch", run_epoch)
+    train("pointpillars", data, tmp_path / "run", profile="tiny", seed=0, progress=False)
+    resumed = torch.load(ckpt, weights_only=False)
+    assert resumed["epoch"] == 2 and 1000.0 < resumed["train_seconds"] < 1000.0 + 60
