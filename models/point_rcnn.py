@@ -35,7 +35,7 @@ from models.roi_head import (
     refine_loss,
     sample_rois,
 )
-from models.voxelize import Grid, _linear_index, range_mask, unique_cells
+from models.voxelize import Grid, one_point_per_voxel, range_mask
 
 
 @dataclass(frozen=True)
@@ -299,13 +299,7 @@ class PointRCNN(Detector):
         """(P, 4) in-range points -> (V, 4) the first point of each occupied near_voxel cube,
         in input order."""
         v = self.cfg.near_voxel
-        grid = Grid(tuple(self.cfg.pc_range), (v, v, v))
-        cells = grid.shape[0] * grid.shape[1] * grid.shape[2]
-        uniq, inverse = unique_cells(_linear_index(pts, grid), cells, return_inverse=True)  # (V,), (P,)
-        p = pts.shape[0]
-        arange = torch.arange(p, dtype=torch.long, device=pts.device)
-        first = torch.full_like(uniq, p).scatter_reduce(0, inverse, arange, "amin")  # (V,)
-        return pts.index_select(0, torch.sort(first).values)  # input order
+        return one_point_per_voxel(pts, Grid(tuple(self.cfg.pc_range), (v, v, v)))
 
     def stage_one(self, pts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """pts (n0, 4) -> features (n0, C), seg logit (n0,), box head output (n0, B)."""

@@ -11,6 +11,8 @@ a dense tensor of the grid is laid out ``[D, H, W]`` like OpenPCDet's ``spatial_
 - :func:`hard_voxelize`: at most ``max_points`` points per voxel (the first ones in input order)
   and at most ``max_voxels`` voxels (those whose first point comes first), as in OpenPCDet /
   spconv's ``VoxelGenerator``.
+- :func:`one_point_per_voxel`: the first point of every occupied voxel (a density-levelling
+  point reduction, used by PointRCNN on near points).
 
 Both return :class:`Voxels`, a point list with a point -> voxel index, which every VFE in
 ``models/vfe.py`` consumes (a padded ``(V, T, C)`` tensor is never needed).
@@ -151,6 +153,20 @@ def _slot_in_voxel(inverse: Tensor, num_voxels: int) -> Tensor:
     return slot.index_put((order,), arange - starts[inverse[order]])
 
 
+def _first_in_voxel(inverse: Tensor, num_voxels: int) -> Tensor:
+    """(V,) int64 input index of the first point of each voxel; ``inverse`` (P,) is each point's voxel."""
+    p = inverse.shape[0]
+    arange = torch.arange(p, dtype=torch.long)
+    return torch.full((num_voxels,), p, dtype=torch.long).scatter_reduce(0, inverse, arange, "amin")
+
+
+def one_point_per_voxel(points: Tensor, grid: Grid) -> Tensor:
+    """(P, C) points inside the grid's range -> (V, C) the first point (input order) of every
+    occupied voxel, in input order."""
+    uniq, inverse = unique_cells(_linear_index(points, grid), math.prod(grid.shape), return_inverse=True)
+    return points.index_select(0, torch.sort(_first_in_voxel(inverse, uniq.shape[0])).values)
+
+
 def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) -> Voxels:
     """Capped voxelization: <= max_points points per voxel, <= max_voxels voxels.
 
@@ -160,10 +176,8 @@ def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) 
     pts = filter_range(points, grid.pc_range)  # (P, 4)
     linear = _linear_index(pts, grid)  # (P,)
     uniq, inverse = unique_cells(linear, math.prod(grid.shape), return_inverse=True)  # (V,), (P,)
-    v, p = uniq.shape[0], pts.shape[0]
-    arange = torch.arange(p, dtype=torch.long)
-    first = torch.full((v,), p, dtype=torch.long).scatter_reduce(0, inverse, arange, "amin")  # (V,)
-    order = torch.argsort(first)[:max_voxels]  # (V',) old voxel ids by first appearance
+    v = uniq.shape[0]
+    order = torch.argsort(_first_in_voxel(inverse, v))[:max_voxels]  # (V',) old voxel ids by first appearance
     new_id = torch.full((v,), -1, dtype=torch.long)
     new_id = new_id.index_put((order,), torch.arange(order.shape[0], dtype=torch.long))  # (V,)
     point_voxel = new_id[inverse]  # (P,) -1 for points of dropped voxels
