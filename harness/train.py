@@ -99,6 +99,14 @@ def _batches(n: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]
 def _run_epoch(net, ds, optimizer, scheduler, tcfg: TrainConfig, seed: int, epoch: int, bar,
                aug: AugmentConfig = AugmentConfig(), database=None) -> float:
     net.train()
+    # the RoI heads' dropout draws from torch's global generator: seed it per epoch (and leave the
+    # caller's state alone), so that a training is repeatable and a resumed epoch draws as before
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(np.random.default_rng([seed, epoch]).integers(2 ** 62)))
+        return _epoch_steps(net, ds, optimizer, scheduler, tcfg, seed, epoch, bar, aug, database)
+
+
+def _epoch_steps(net, ds, optimizer, scheduler, tcfg, seed, epoch, bar, aug, database) -> float:
     losses = []
     for step, idx in enumerate(_batches(len(ds), tcfg.batch_size, seed, epoch)):
         rng = np.random.default_rng([seed, epoch, step])
