@@ -12,6 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from models.base import tracing
 from models.voxelize import Grid, Voxels
 
 
@@ -48,10 +49,17 @@ def voxel_max_nonneg(values: Tensor, voxels: Voxels) -> Tensor:
     With hard voxelization the points are first laid out as a dense (V, T, C) tensor by their
     slot and reduced over T: a slot -> point table (scatter of P integers), then one row
     gather, which onnxruntime runs much faster than a per-element ScatterElements max or a
-    ScatterND of whole rows; dynamic voxels fall back to :func:`scatter_max_nonneg`.
+    ScatterND of whole rows; dynamic voxels fall back to :func:`scatter_max_nonneg`. Under
+    autograd the scatter form runs as well: same values and gradients, and its backward touches
+    P rows instead of the V * T slots of the dense layout (a PointPillars training step 1.27x).
     """
-    if voxels.slot is None:
+    if voxels.slot is None or (torch.is_grad_enabled() and not tracing()):
         return scatter_max_nonneg(values, voxels.point2voxel, voxels.num_voxels)
+    return slot_max(values, voxels)
+
+
+def slot_max(values: Tensor, voxels: Voxels) -> Tensor:
+    """:func:`voxel_max_nonneg` of hard voxels as a dense (V, T, C) gather reduced over T."""
     t, (p, c) = voxels.max_points, values.shape
     rows = torch.full((voxels.num_voxels * t,), p, dtype=torch.long)  # (V * T,) p = empty slot
     rows = rows.scatter(0, voxels.point2voxel * t + voxels.slot, torch.arange(p, dtype=torch.long))

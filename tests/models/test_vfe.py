@@ -51,6 +51,28 @@ def test_voxel_max_uses_slots_of_hard_voxels():
     for cap in (1, 3, 40):
         vox = hard_voxelize(pts, GRID, cap, 10000)
         vals = torch.from_numpy(rng.random((vox.points.shape[0], 5)).astype(np.float32))
-        got = voxel_max_nonneg(vals, vox).numpy()
+        with torch.no_grad():
+            got = voxel_max_nonneg(vals, vox).numpy()  # inference: the dense slot form
         for i in range(vox.num_voxels):
             np.testing.assert_array_equal(got[i], vals[(vox.point2voxel == i).numpy()].numpy().max(0))
+
+
+def test_voxel_max_training_form_matches_slot_form_with_gradients():
+    from models.vfe import slot_max, voxel_max_nonneg
+    from models.voxelize import hard_voxelize
+
+    rng = np.random.default_rng(5)
+    pts = torch.from_numpy((rng.random((3000, 4)) * [8, 8, 4, 1] + [0, -4, -3, 0]).astype(np.float32))
+    for cap in (1, 3, 40):
+        vox = hard_voxelize(pts, GRID, cap, 10000)
+        upstream = torch.from_numpy(rng.standard_normal((vox.num_voxels, 5)).astype(np.float32))
+        base = torch.from_numpy(rng.random((vox.points.shape[0], 5)).astype(np.float32))
+        outs, grads = [], []
+        for form in (voxel_max_nonneg, slot_max):  # under autograd voxel_max_nonneg scatters
+            vals = base.clone().requires_grad_(True)
+            out = form(vals, vox)
+            (out * upstream).sum().backward()
+            outs.append(out.detach())
+            grads.append(vals.grad)
+        torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=0)
+        torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=0)
