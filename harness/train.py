@@ -99,27 +99,23 @@ def _batches(n: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]
 def _run_epoch(net, ds, optimizer, scheduler, tcfg: TrainConfig, seed: int, epoch: int, bar,
                aug: AugmentConfig = AugmentConfig(), database=None) -> float:
     net.train()
+    losses = []
     # the RoI heads' dropout draws from torch's global generator: seed it per epoch (and leave the
     # caller's state alone), so that a training is repeatable and a resumed epoch draws as before
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(int(np.random.default_rng([seed, epoch]).integers(2 ** 62)))
-        return _epoch_steps(net, ds, optimizer, scheduler, tcfg, seed, epoch, bar, aug, database)
-
-
-def _epoch_steps(net, ds, optimizer, scheduler, tcfg, seed, epoch, bar, aug, database) -> float:
-    losses = []
-    for step, idx in enumerate(_batches(len(ds), tcfg.batch_size, seed, epoch)):
-        rng = np.random.default_rng([seed, epoch, step])
-        samples = [augment(ds[int(i)], rng, aug, database) for i in idx]
-        loss = net.loss(samples)["loss"]
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), tcfg.grad_clip)
-        optimizer.step()
-        scheduler.step()
-        losses.append(float(loss.detach()))
-        bar.update(1)
-        bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.3f}")
+        for step, idx in enumerate(_batches(len(ds), tcfg.batch_size, seed, epoch)):
+            rng = np.random.default_rng([seed, epoch, step])
+            samples = [augment(ds[int(i)], rng, aug, database) for i in idx]
+            loss = net.loss(samples)["loss"]
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), tcfg.grad_clip)
+            optimizer.step()
+            scheduler.step()
+            losses.append(float(loss.detach()))
+            bar.update(1)
+            bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.3f}")
     return float(np.mean(losses)) if losses else math.nan
 
 
