@@ -25,6 +25,12 @@ def tracing() -> bool:
     return torch.compiler.is_exporting() or torch.compiler.is_compiling()
 
 
+def training_form() -> bool:
+    """True in eager mode with autograd on: code with a faster-to-train form of an op (same values
+    and gradients as its inference / graph form) takes that one."""
+    return torch.is_grad_enabled() and not tracing()
+
+
 class Detector(nn.Module):
     architecture: str = ""  # the model name used on the command line, e.g. "pointpillars"
     two_stage: bool = False

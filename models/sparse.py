@@ -32,7 +32,7 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor, nn
 
-from models.base import tracing
+from models.base import training_form
 from models.vfe import RowBatchNorm
 from models.voxelize import all_axes, unique_cells
 
@@ -165,7 +165,7 @@ def gather_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
     Inference (and export) runs :func:`table_gemm`; with autograd on, :func:`pair_gemm` works
     on the occupied entries only, which the backward pass repays.
     """
-    if torch.is_grad_enabled() and not tracing():
+    if training_form():
         return pair_gemm(features, table, weight)
     return table_gemm(features, table, weight)
 

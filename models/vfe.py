@@ -12,7 +12,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from models.base import tracing
+from models.base import training_form
 from models.voxelize import Grid, Voxels
 
 
@@ -53,7 +53,7 @@ def voxel_max_nonneg(values: Tensor, voxels: Voxels) -> Tensor:
     autograd the scatter form runs as well: same values and gradients, and its backward touches
     P rows instead of the V * T slots of the dense layout (a PointPillars training step 1.27x).
     """
-    if voxels.slot is None or (torch.is_grad_enabled() and not tracing()):
+    if voxels.slot is None or training_form():
         return scatter_max_nonneg(values, voxels.point2voxel, voxels.num_voxels)
     return slot_max(values, voxels)
 
