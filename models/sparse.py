@@ -2,8 +2,10 @@
 
 A :class:`SparseTensor` is one frame's active voxels: features ``(V, C)``, integer coordinates
 ``(V, 3)`` as (z, y, x) and the grid shape ``(D, H, W)``. Neighbour tables are built from the
-active voxels only: a dense int64 "index grid" (``D*H*W`` entries, value ``V`` = empty) is
-filled by scatter once per resolution, and each kernel offset is looked up with a gather. The
+active voxels only: a dense int64 "index grid" (value ``V`` = empty), padded by a margin of
+empty cells around the ``(D, H, W)`` grid, is filled by scatter once per resolution, and the
+neighbours of every kernel offset are one gather at ``linear index of the voxel + linear offset
+of the kernel tap`` (the margin catches the taps that leave the grid, so no bounds tests). The
 table ``(V_out, K)`` holds, per output voxel and kernel offset, the input row or ``V_in``
 (which points at an appended zero row). The convolution is then one GEMM:
 ``out = features_padded[table].reshape(V_out, K * C_in) @ weight (K * C_in, C_out)``.
@@ -87,6 +89,15 @@ class SparseTensor:
             self.cache["grid"] = build_index_grid(self.coords, self.shape)
         return self.cache["grid"]
 
+    def padded_grid(self, margin: tuple[int, int, int]) -> tuple[Tensor, tuple[int, int, int]]:
+        """Index grid of the voxels in the grid widened by ``margin`` empty cells on both sides of
+        each axis (coords shifted by ``margin``), and that padded shape; cached per margin."""
+        key = ("padded", margin)
+        shape = tuple(n + 2 * m for n, m in zip(self.shape, margin))
+        if key not in self.cache:
+            self.cache[key] = build_index_grid(self.coords + torch.tensor(margin), shape)
+        return self.cache[key], shape
+
 
 def _linear_axis_major(query: Tensor, shape) -> Tensor:
     """(...) int64 linear index z * H * W + y * W + x of axis-major coords (3, ...)."""
@@ -103,7 +114,7 @@ def build_index_grid(coords: Tensor, shape) -> Tensor:
     """(D*H*W,) int64 grid with the row index of each active voxel, V elsewhere."""
     v = coords.shape[0]
     grid = torch.full((shape[0] * shape[1] * shape[2],), v, dtype=torch.long)
-    return grid.index_put((linear_index(coords, shape),), torch.arange(v, dtype=torch.long))
+    return grid.index_put_((linear_index(coords, shape),), torch.arange(v, dtype=torch.long))
 
 
 def lookup(grid: Tensor, shape, query: Tensor, valid: Tensor | None, missing: int) -> Tensor:
@@ -117,34 +128,57 @@ def lookup(grid: Tensor, shape, query: Tensor, valid: Tensor | None, missing: in
     return torch.where(inside, take_rows(grid, lin), torch.full_like(lin, missing)).T
 
 
+def _margin(low, high) -> tuple[int, int, int]:
+    """Empty cells to pad each side of each axis with: enough for taps ``low`` cells before and
+    ``high`` after the grid; at least 1, so that the 3x3x3 convs of one resolution share a grid."""
+    return tuple(max(1, lo, hi) for lo, hi in zip(low, high))
+
+
+def padded_lookup(x: SparseTensor, corner: Tensor, kernel, margin) -> Tensor:
+    """(V_q, K) rows of ``x``'s voxels at ``corner + kernel offset`` for corners (V_q, 3) (any
+    cell within ``margin`` of the grid); ``V`` where empty: one add and one gather."""
+    grid, shape = x.padded_grid(margin)
+    base = linear_index(corner + torch.tensor(margin), shape)  # (V_q,)
+    taps = linear_index(kernel_offsets(kernel), shape)  # (K,)
+    return take_rows(grid, taps[:, None] + base[None, :]).T
+
+
 def subm_table(x: SparseTensor, kernel) -> Tensor:
     """(V, K) neighbour table of a submanifold conv (centred kernel), cached per kernel."""
     key = ("subm", _triple(kernel))
     if key not in x.cache:
-        query = x.coords.T[:, None, :] + _offset_rows(kernel) - _axis_column(kernel) // 2  # (3, K, V)
-        x.cache[key] = lookup(x.index_grid(), x.shape, query, None, x.coords.shape[0])
+        half = tuple(k // 2 for k in _triple(kernel))
+        x.cache[key] = padded_lookup(x, x.coords - torch.tensor(half), kernel, _margin(half, half))
     return x.cache[key]
 
 
 def strided_out_coords(x: SparseTensor, kernel, stride, padding) -> tuple[Tensor, tuple]:
-    """(V_out, 3) active output coords of a strided conv, sorted by linear index; out shape."""
-    s, p = _axis_column(stride), _axis_column(padding)
-    shape = out_shape(x.shape, kernel, stride, padding)
-    cand = x.coords.T[:, None, :] + p - _offset_rows(kernel)  # (3, K, V) = out * s
-    hi = _axis_column(shape)
-    ok = all_axes(((cand % s) == 0) & (cand >= 0) & (cand < hi * s))  # (K, V)
-    lin = _linear_axis_major(torch.div(cand, s, rounding_mode="floor"), shape)[ok]  # (M,)
-    uniq = unique_cells(lin, math.prod(shape))  # (V_out,) ascending
+    """(V_out, 3) active output coords of a strided conv, sorted by linear index; out shape.
+
+    Per axis, the taps k with (in + p - k) divisible by s and inside the output grid give the
+    candidate outputs (k_axis, V); the three axes combine by broadcasting."""
+    k, s, p = _triple(kernel), _triple(stride), _triple(padding)
+    shape = out_shape(x.shape, k, s, p)
     _, h, w = shape
+    lin, ok = 0, True  # -> (kz, ky, kx, V): output cell of each tap, and whether it exists
+    for axis, place in enumerate((h * w, w, 1)):
+        cand = x.coords[:, axis][None, :] + p[axis] - torch.arange(k[axis])[:, None]  # (k_axis, V) = out * s
+        exists = ((cand % s[axis]) == 0) & (cand >= 0) & (cand < shape[axis] * s[axis])
+        axis_view = [1, 1, 1, -1]
+        axis_view[axis] = k[axis]
+        lin = lin + (torch.div(cand, s[axis], rounding_mode="floor") * place).reshape(axis_view)
+        ok = ok & exists.reshape(axis_view)
+    uniq = unique_cells(lin[ok], math.prod(shape))  # (V_out,) ascending
     coords = torch.stack([uniq // (h * w), (uniq // w) % h, uniq % w], dim=1)
     return coords, shape
 
 
 def strided_table(x: SparseTensor, out_coords: Tensor, kernel, stride, padding) -> Tensor:
     """(V_out, K) input rows feeding each output voxel: in = out * s - p + k."""
-    s, p = _axis_column(stride), _axis_column(padding)
-    query = out_coords.T[:, None, :] * s - p + _offset_rows(kernel)  # (3, K, V_out)
-    return lookup(x.index_grid(), x.shape, query, None, x.coords.shape[0])
+    k, s, p = _triple(kernel), _triple(stride), _triple(padding)
+    last = out_shape(x.shape, k, s, p)
+    after = [(o - 1) * si - pi + ki - n for o, si, pi, ki, n in zip(last, s, p, k, x.shape)]  # cells past the end
+    return padded_lookup(x, out_coords * torch.tensor(s) - torch.tensor(p), k, _margin(p, after))
 
 
 def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padding) -> Tensor:
@@ -184,15 +218,56 @@ def pair_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
     A LiDAR surface fills a quarter to a half of a 3x3x3 neighbourhood; the one-GEMM form also
     multiplies, and back-propagates through, the zero rows of the empty ones. Here the
     (output row, input row) pairs of each kernel offset get one GEMM each, and the products
-    are summed into their output rows.
+    are summed into their output rows (:class:`_PairGemm`).
     """
-    k, c_in, c_out = weight.shape
     offset, out_row = torch.nonzero((table != features.shape[0]).T, as_tuple=True)  # (M,) grouped by offset
     in_row = table[out_row, offset]  # (M,)
-    counts = torch.bincount(offset, minlength=k).tolist()
-    gathered = torch.split(features.index_select(0, in_row), counts)  # K x (M_k, C_in)
-    products = torch.cat([rows @ weight[i] for i, rows in enumerate(gathered)])  # (M, C_out)
-    return features.new_zeros(table.shape[0], c_out).index_add(0, out_row, products)
+    counts = torch.bincount(offset, minlength=weight.shape[0]).tolist()
+    return _PairGemm.apply(features, weight, in_row, out_row, counts, table.shape[0])
+
+
+def _segments(counts: list[int]):
+    """(kernel offset, row slice) of each offset's non-empty run of pairs."""
+    start = 0
+    for k, n in enumerate(counts):
+        if n:
+            yield k, slice(start, start + n)
+        start += n
+
+
+class _PairGemm(torch.autograd.Function):
+    """out[o] = sum over pairs (i, o, k) of features[i] @ weight[k], pairs grouped by k.
+
+    The products of all offsets are written into one (M, C_out) buffer and summed into the
+    output rows by one ``index_add``; the backward pass writes the gradient rows the same way
+    (autograd's split / cat of the per-offset pieces would copy both once more)."""
+
+    @staticmethod
+    def forward(ctx, features, weight, in_row, out_row, counts, v_out):
+        gathered = features.index_select(0, in_row)  # (M, C_in)
+        products = features.new_empty(in_row.shape[0], weight.shape[2])  # (M, C_out)
+        for k, rows in _segments(counts):
+            torch.mm(gathered[rows], weight[k], out=products[rows])
+        ctx.save_for_backward(gathered, weight, in_row, out_row)
+        ctx.counts, ctx.v_in = counts, features.shape[0]
+        return features.new_zeros(v_out, weight.shape[2]).index_add_(0, out_row, products)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_out):
+        gathered, weight, in_row, out_row = ctx.saved_tensors
+        grad_products = grad_out.index_select(0, out_row)  # (M, C_out)
+        grad_features = grad_weight = None
+        if ctx.needs_input_grad[1]:
+            grad_weight = torch.zeros_like(weight)
+            for k, rows in _segments(ctx.counts):
+                torch.mm(gathered[rows].T, grad_products[rows], out=grad_weight[k])
+        if ctx.needs_input_grad[0]:
+            grad_gathered = torch.empty_like(gathered)  # (M, C_in)
+            for k, rows in _segments(ctx.counts):
+                torch.mm(grad_products[rows], weight[k].T, out=grad_gathered[rows])
+            grad_features = grad_out.new_zeros(ctx.v_in, gathered.shape[1]).index_add_(0, in_row, grad_gathered)
+        return grad_features, grad_weight, None, None, None, None
 
 
 class _SparseConvBase(nn.Module):

@@ -45,9 +45,22 @@ def test_subm_conv_matches_dense_conv3d(mode):
 
 
 @MODES
+def test_subm_conv_of_other_kernels_matches_dense_conv3d(mode):
+    """The padded index grid's margin follows the kernel (5: two cells, (1, 3, 3): none in z)."""
+    rng = np.random.default_rng(6)
+    for kernel in (5, (1, 3, 3), (3, 1, 5)):
+        x = _sparse(rng, 200, 2)
+        conv = SubMConv3d(2, 3, kernel)
+        with mode():
+            y = conv(x)
+        ref = F.conv3d(to_dense(x)[None], _dense_weight(conv), padding=tuple(k // 2 for k in conv.kernel))[0]
+        torch.testing.assert_close(y.features, _at(ref, x.coords), rtol=1e-4, atol=1e-5)
+
+
+@MODES
 def test_strided_conv_matches_dense_conv3d(mode):
     rng = np.random.default_rng(1)
-    for kernel, stride, pad in ((3, 2, 1), ((3, 1, 1), (2, 1, 1), 0), (3, 2, (0, 1, 1))):
+    for kernel, stride, pad in ((3, 2, 1), ((3, 1, 1), (2, 1, 1), 0), (3, 2, (0, 1, 1)), (5, 3, 2), (2, 2, 0)):
         x = _sparse(rng, 120, 4)
         conv = SparseConv3d(4, 6, kernel, stride, pad)
         with mode():
