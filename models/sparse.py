@@ -20,8 +20,9 @@ table ``(V_out, K)`` holds, per output voxel and kernel offset, the input row or
 Tables and index grids are cached on the tensor (``cache``) so the layers of one resolution
 share them; every function accepts V = 0 and exports with the dynamo ONNX exporter.
 
-Coordinate arithmetic of the tables runs on axis-major ``(3, K, V)`` queries (axis, kernel
-offset, voxel), so that onnxruntime broadcasts over long rows (see ``models/voxelize.py``),
+The transposed conv's table, which needs a divisibility test per axis, runs its coordinate
+arithmetic on axis-major ``(3, K, V)`` queries (axis, kernel offset, voxel), so that
+onnxruntime broadcasts over long rows (see ``models/voxelize.py``),
 and rows are picked with ``index_select`` (ONNX ``Gather``) rather than advanced indexing
 (``GatherND``, row by row).
 """
