@@ -25,6 +25,24 @@ def test_anchor_layout_matches_head_flatten():
     assert box.shape == (64, 7) and dirs.shape == (64, 2)
 
 
+def test_head_gemm_matches_the_three_convs():
+    torch.manual_seed(3)
+    head = AnchorHead(16, (6, 10), RANGE, CFG)
+    feats = torch.randn(1, 16, 6, 10, requires_grad=True)
+    cls, box, dirs = head(feats)
+    loss = (cls.square().sum() + box.sin().sum() + dirs.cos().sum())
+    grads = torch.autograd.grad(loss, [feats, *head.parameters()])
+
+    def flat(x, c):  # the conv layout: (1, R * c, H, W) -> (H * W * R, c)
+        return x[0].permute(1, 2, 0).reshape(-1, c)
+    ref = (flat(head.conv_cls(feats), 1)[:, 0], flat(head.conv_box(feats), 7), flat(head.conv_dir(feats), 2))
+    for got, want in zip((cls, box, dirs), ref):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-5)
+    ref_loss = ref[0].square().sum() + ref[1].sin().sum() + ref[2].cos().sum()
+    for got, want in zip(grads, torch.autograd.grad(ref_loss, [feats, *head.parameters()])):
+        torch.testing.assert_close(got, want, rtol=1e-4, atol=1e-5)
+
+
 def test_assign_targets_matches_numpy_rules():
     anchors = make_anchors(RANGE, (8, 16), CFG)
     gt = np.array([[5.1, 1.2, -1.0, 4.0, 1.7, 1.5, 0.1], [11.0, -3.0, -1.0, 4.2, 1.8, 1.5, 1.4]], np.float32)
