@@ -14,6 +14,7 @@ from __future__ import annotations
 import io
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -100,13 +101,21 @@ def _run_epoch(net, ds, optimizer, scheduler, tcfg: TrainConfig, seed: int, epoc
                aug: AugmentConfig = AugmentConfig(), database=None) -> float:
     net.train()
     losses = []
+    batches = _batches(len(ds), tcfg.batch_size, seed, epoch)
+
+    def load(step: int) -> list:
+        rng = np.random.default_rng([seed, epoch, step])  # a step's augmentation draws: its own generator
+        return [augment(ds[int(i)], rng, aug, database) for i in batches[step]]
+
     # the RoI heads' dropout draws from torch's global generator: seed it per epoch (and leave the
     # caller's state alone), so that a training is repeatable and a resumed epoch draws as before
-    with torch.random.fork_rng(devices=[]):
+    with torch.random.fork_rng(devices=[]), ThreadPoolExecutor(1) as loader:
         torch.manual_seed(int(np.random.default_rng([seed, epoch]).integers(2 ** 62)))
-        for step, idx in enumerate(_batches(len(ds), tcfg.batch_size, seed, epoch)):
-            rng = np.random.default_rng([seed, epoch, step])
-            samples = [augment(ds[int(i)], rng, aug, database) for i in idx]
+        pending = loader.submit(load, 0) if batches else None
+        for step in range(len(batches)):
+            samples = pending.result()
+            if step + 1 < len(batches):  # read and augment the next batch while this one trains
+                pending = loader.submit(load, step + 1)
             loss = net.loss(samples)["loss"]
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
