@@ -11,8 +11,9 @@ def scatter_to_bev(features: Tensor, coords: Tensor, shape: tuple[int, int, int]
     _, h, w = shape
     c = features.shape[1]
     lin = coords[:, 1] * w + coords[:, 2]  # (V,)
-    dense = features.new_zeros(h * w, c).index_put((lin,), features)  # (H*W, C)
-    return dense.T.reshape(1, c, h, w)
+    # written channel-major, so the map needs no transposed copy (forward and backward)
+    dense = features.new_zeros(c, h * w).index_copy(1, lin, features.T)  # (C, H*W)
+    return dense.reshape(1, c, h, w)
 
 
 def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> list[nn.Module]:
