@@ -25,12 +25,9 @@ class SECONDConfig:
     voxel_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # metres
     max_points: int = 5  # per voxel
     max_voxels: int = 40000
-    # the third stage halves z only, with a (3, 1, 1) kernel: a 3x3 footprint there would add a
-    # ring of new voxels around every surface at the 0.8 m BEV stride (V 5.8k -> 8.7k on a frame)
-    # and, with them, 8-21 % of a training epoch
     backbone3d: VoxelBackboneConfig = VoxelBackboneConfig(
         16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 1), StageSpec(64, (2, 2, 2), (1, 1, 1), 1),
-             StageSpec(64, (2, 1, 1), (0, 0, 0), 1, (3, 1, 1))), 64, (1, 0, 0))
+             StageSpec(64, (2, 1, 1), (0, 1, 1), 1)), 64, (1, 0, 0))
     layers: tuple[int, ...] = (2, 2)
     strides: tuple[int, ...] = (1, 2)
     filters: tuple[int, ...] = (64, 128)
@@ -42,7 +39,7 @@ class SECONDConfig:
 TINY = SECONDConfig(
     pc_range=(0.0, -8.0, -3.0, 16.0, 8.0, 1.0), voxel_size=(0.4, 0.4, 0.4), max_points=5, max_voxels=3000,
     backbone3d=VoxelBackboneConfig(8, (StageSpec(8, (2, 2, 2), (1, 1, 1), 0), StageSpec(16, (2, 2, 2), (1, 1, 1), 0),
-                                       StageSpec(16, (2, 1, 1), (0, 0, 0), 0, (3, 1, 1))), 16, (1, 0, 0)),
+                                       StageSpec(16, (2, 1, 1), (0, 1, 1), 0)), 16, (1, 0, 0)),
     layers=(1,), strides=(1,), filters=(16,), upsample_strides=(2,), upsample_filters=(16,),
     head=HeadConfig(anchor_z=-1.0, nms_pre=64))
 KITTI = SECONDConfig(  # OpenPCDet tools/cfgs/kitti_models/second.yaml

@@ -1,7 +1,7 @@
 """Sparse 3D voxel backbone (SECOND / OpenPCDet ``VoxelBackBone8x`` layout, configurable).
 
 stem: SubM(c_in -> c_stem) + SubM(c_stem)        at the input resolution
-stage i: SparseConv(kernel_i, stride_i) + n_i x SubM   one strided conv per stage
+stage i: SparseConv(stride_i) + n_i x SubM        one strided conv per stage
 out: SparseConv(kernel (3, 1, 1), stride (2, 1, 1)) -> the z-collapse before height compression
 Each conv is followed by BatchNorm + ReLU. ``forward`` returns the output tensor and the
 stage outputs (finest first) so that two-stage models can pool from them.
@@ -21,7 +21,6 @@ class StageSpec:
     stride: tuple[int, int, int]  # (z, y, x)
     padding: tuple[int, int, int]
     subm: int  # submanifold convs after the strided one
-    kernel: tuple[int, int, int] = (3, 3, 3)  # of the strided conv
 
 
 @dataclass(frozen=True)
@@ -41,8 +40,7 @@ class VoxelBackbone(nn.Module):
         self.stem = nn.Sequential(conv_block(SubMConv3d(c_in, c), c), conv_block(SubMConv3d(c, c), c))
         self.stages = nn.ModuleList()
         for spec in cfg.stages:
-            strided = SparseConv3d(c, spec.channels, spec.kernel, spec.stride, spec.padding)
-            mods = [conv_block(strided, spec.channels)]
+            mods = [conv_block(SparseConv3d(c, spec.channels, 3, spec.stride, spec.padding), spec.channels)]
             mods += [conv_block(SubMConv3d(spec.channels, spec.channels), spec.channels)
                      for _ in range(spec.subm)]
             self.stages.append(nn.Sequential(*mods))
@@ -64,5 +62,5 @@ def output_shape(grid_shape, cfg: VoxelBackboneConfig) -> tuple[int, int, int]:
     """(D, H, W) after the stages and the z-collapse."""
     shape = tuple(grid_shape)
     for spec in cfg.stages:
-        shape = out_shape(shape, spec.kernel, spec.stride, spec.padding)
+        shape = out_shape(shape, 3, spec.stride, spec.padding)
     return out_shape(shape, (3, 1, 1), (2, 1, 1), cfg.out_padding)

@@ -10,11 +10,12 @@ from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig,
 
 SHAPE = (10, 12, 14)
 CONFIGS = {
-    "cubic": VoxelBackboneConfig(4, (StageSpec(6, (2, 2, 2), (1, 1, 1), 1), StageSpec(8, (2, 1, 1), (0, 1, 1), 1)),
-                                 8, (1, 0, 0)),
-    # SECOND's compact third stage: z halved by a (3, 1, 1) kernel, no new cells in y / x
-    "z-only": VoxelBackboneConfig(4, (StageSpec(6, (2, 2, 2), (1, 1, 1), 1),
-                                      StageSpec(8, (2, 1, 1), (0, 0, 0), 1, (3, 1, 1))), 8, (1, 0, 0)),
+    # SECOND's compact layout: the last stage halves z only
+    "compact": VoxelBackboneConfig(4, (StageSpec(6, (2, 2, 2), (1, 1, 1), 1), StageSpec(8, (2, 1, 1), (0, 1, 1), 1)),
+                                   8, (1, 0, 0)),
+    # OpenPCDet's VoxelBackBone8x layout: every stage strided in all axes, no padding in z at the last
+    "8x": VoxelBackboneConfig(4, (StageSpec(6, (2, 2, 2), (1, 1, 1), 2), StageSpec(8, (2, 2, 2), (0, 1, 1), 0)),
+                              8, (1, 0, 0)),
 }
 
 
