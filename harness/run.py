@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, replace
@@ -211,8 +212,18 @@ def _model_job(cfg: RunConfig, run_dir: Path, name: str, train_hash: str, sotif_
 def _job_init(threads: int) -> None:
     os.environ["OMP_NUM_THREADS"] = str(threads)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
     import torch
     torch.set_num_threads(threads)
+
+
+def _exit_with_parent(parent: int, poll_s: float = 0.5) -> None:
+    """End this job process once the run's process is gone: a run killed by a signal (``kill``,
+    ``timeout``) would otherwise leave its jobs training on for many minutes. What they wrote
+    stays (atomic writes), and the next run resumes from it."""
+    while os.getppid() == parent:
+        time.sleep(poll_s)
+    os._exit(1)
 
 
 def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str, sotif_hash: str, runtime: str,

@@ -1,5 +1,11 @@
 """The benchmark pipeline on a tiny configuration: end to end, skip when current, resume."""
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -77,3 +83,33 @@ def test_bad_profile_and_model_names():
         run(profile="huge")
     with pytest.raises(ValueError, match="unknown model"):
         run(models=["yolo"], profile="quick")
+
+
+def test_job_processes_end_when_the_run_is_killed(tmp_path):
+    # the run's process (here a stand-in) is SIGKILLed while its job process works: the job must not train on
+    script = ("import os, sys, time, multiprocessing\n"
+              "from concurrent.futures import ProcessPoolExecutor\n"
+              "from harness.run import _job_init\n"
+              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_job_init,"
+              " initargs=(1,))\n"
+              "print(pool.submit(os.getpid).result(), flush=True)\n"
+              "pool.submit(time.sleep, 120).result()\n")
+    run_proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True,
+                                cwd=Path(__file__).parents[2])
+    job = int(run_proc.stdout.readline())
+
+    def running(pid):
+        try:
+            return open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+    assert running(job)
+    run_proc.send_signal(signal.SIGKILL)
+    run_proc.wait()
+    deadline = time.monotonic() + 15
+    while running(job) and time.monotonic() < deadline:
+        time.sleep(0.1)
+    alive = running(job)
+    if alive:
+        os.kill(job, signal.SIGKILL)
+    assert not alive
