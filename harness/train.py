@@ -107,10 +107,12 @@ def _run_epoch(net, ds, optimizer, scheduler, tcfg: TrainConfig, seed: int, epoc
         rng = np.random.default_rng([seed, epoch, step])  # a step's augmentation draws: its own generator
         return [augment(ds[int(i)], rng, aug, database) for i in batches[step]]
 
-    # the RoI heads' dropout draws from torch's global generator: seed it per epoch (and leave the
-    # caller's state alone), so that a training is repeatable and a resumed epoch draws as before
+    # the RoI heads' dropout draws from torch's global generator and their RoI sampling from the
+    # model's own: seed both per epoch (and leave the caller's torch state alone), so that a
+    # training is repeatable and a resumed epoch draws as before
     with torch.random.fork_rng(devices=[]), ThreadPoolExecutor(1) as loader:
         torch.manual_seed(int(np.random.default_rng([seed, epoch]).integers(2 ** 62)))
+        net.sampling_rng = np.random.default_rng([seed, epoch, 1])
         pending = loader.submit(load, 0) if batches else None
         for step in range(len(batches)):
             samples = pending.result()

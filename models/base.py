@@ -9,9 +9,13 @@ A detector is an ``nn.Module`` built from a frozen config dataclass. The harness
   OpenPCDet-style Recall at RCNN). One frame, no batch axis, LiDAR frame, final NMS inside.
 - ``loss(samples)`` -> dict of scalar tensors with the total under ``"loss"``.
 - the class attributes below (written into the ONNX metadata).
+- ``sampling_rng``: the numpy generator of a model's training draws beyond torch's (the
+  two-stage models' RoI sampling); the trainer reseeds it every epoch, so that a resumed
+  training draws as an uninterrupted one.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -35,6 +39,7 @@ class Detector(nn.Module):
     architecture: str = ""  # the model name used on the command line, e.g. "pointpillars"
     two_stage: bool = False
     uses_camera: bool = False
+    sampling_rng: np.random.Generator | None = None  # set by two-stage models; see the module docstring
 
     @property
     def output_names(self) -> tuple[str, ...]:

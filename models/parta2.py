@@ -212,7 +212,7 @@ class PartA2(Detector):
         self.part_head = nn.Sequential(nn.Linear(c1, c1), nn.ReLU(), nn.Linear(c1, 3))
         nn.init.constant_(self.seg_head[-1].bias, -math.log((1 - 0.01) / 0.01))
         self.rcnn = PartAggregationHead(cfg)
-        self._rng = np.random.default_rng(cfg.seed)
+        self.sampling_rng = np.random.default_rng(cfg.seed)
 
     def stage1(self, points: Tensor):
         """points (N, 4) -> voxel centres (V, 3), voxel features (V, C1), seg logit (V,),
@@ -246,7 +246,7 @@ class PartA2(Detector):
                           if bool(on.any()) else part.sum() * 0.0)
         with torch.no_grad():
             rois, _ = propose(self.rpn, bev, self.cfg.proposals_train)
-        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self._rng)
+        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng)
         targets.rois, targets.iou, targets.gt = (t.to(device) for t in (targets.rois, targets.iou, targets.gt))
         logit, deltas = self.rcnn(targets.rois, xyz, feats, torch.sigmoid(seg).detach(),
                                   torch.sigmoid(part).detach())

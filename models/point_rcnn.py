@@ -257,7 +257,7 @@ class PointRCNN(Detector):
         self.box_head = mlp_head(c, cfg.head_channels, bin_channels(cfg))
         self.rcnn = RCNNNet(cfg, c)
         self.roi_cfg = RoITargetConfig(per_frame=cfg.rois)
-        self.rng = np.random.default_rng(cfg.seed)
+        self.sampling_rng = np.random.default_rng(cfg.seed)
 
     def points_of_interest(self, points: Tensor) -> tuple[Tensor, Tensor]:
         """(N, 4) -> (num_points, 4) the in-range points thinned to num_points, and a bool
@@ -372,7 +372,7 @@ class PointRCNN(Detector):
             out["rpn_box"] = box.sum() * 0.0
         with torch.no_grad():
             rois, _, valid = self.propose(pts, seg, box)
-        targets = sample_rois(rois[valid].cpu().numpy(), cars.cpu().numpy(), self.roi_cfg, self.rng)
+        targets = sample_rois(rois[valid].cpu().numpy(), cars.cpu().numpy(), self.roi_cfg, self.sampling_rng)
         targets = RoITargets(targets.rois.to(device), targets.iou.to(device), targets.gt.to(device))
         logit, deltas = self.refine(pts, feats, seg, targets.rois, torch.ones_like(targets.iou, dtype=torch.bool))
         out.update(refine_loss(logit, deltas, targets, self.roi_cfg))

@@ -191,7 +191,7 @@ class PVRCNN(Detector):
         self.roi_grid = RoIGridPool(cfg.kp_channels, cfg.grid, cfg.grid_radii, cfg.grid_nsamples,
                                     cfg.grid_mlps)
         self.refine = RefineHead(self.roi_grid.out_channels * cfg.grid ** 3, cfg.fc, cfg.dropout)
-        self._rng = np.random.default_rng(cfg.seed)
+        self.sampling_rng = np.random.default_rng(cfg.seed)
 
     def stage1(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         """points (N, 4) -> keypoints (P, 3), keypoint features (P, C), keypoint logit (P,),
@@ -226,7 +226,7 @@ class PVRCNN(Detector):
         losses["keypoint"] = sigmoid_focal_loss(kp_logit, kp_fg, torch.ones_like(kp_fg)) / kp_fg.sum().clamp(min=1.0)
         with torch.no_grad():
             rois, _ = propose(self.rpn, bev, self.cfg.proposals_train)
-        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self._rng)
+        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng)
         targets.rois, targets.iou, targets.gt = (t.to(device) for t in (targets.rois, targets.iou, targets.gt))
         losses.update(refine_loss(*self.stage2(targets.rois, keypoints, kp_feats), targets, self.cfg.targets))
         c = self.cfg

@@ -76,3 +76,27 @@ def test_two_stage_training_is_repeatable_whatever_the_global_rng(tmp_path):
     assert torch.initial_seed() == 1001  # the caller's generator is left alone
     for k, v in states[0].items():
         assert torch.equal(v, states[1][k]), k
+
+
+@pytest.mark.parametrize("model", ["parta2", "point_rcnn"])
+def test_resumed_two_stage_training_equals_an_uninterrupted_one(tmp_path, monkeypatch, model):
+    """RoI sampling draws from the model's own generator: a training stopped after epoch 1 and
+    resumed ends with the weights of one that ran through."""
+    import harness.train as train_mod
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=3)
+    whole = train(model, data, tmp_path / "whole", profile="tiny", epochs=2, seed=0, progress=False)
+    run_epoch = train_mod._run_epoch
+
+    def stop_at_epoch_1(*args, **kwargs):
+        if args[6] == 1:
+            raise KeyboardInterrupt
+        return run_epoch(*args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "_run_epoch", stop_at_epoch_1)
+    with pytest.raises(KeyboardInterrupt):
+        train(model, data, tmp_path / "parts", profile="tiny", epochs=2, seed=0, progress=False)
+    monkeypatch.setattr(train_mod, "_run_epoch", run_epoch)
+    parts = train(model, data, tmp_path / "parts", profile="tiny", epochs=2, seed=0, progress=False)
+    a, b = (torch.load(p, weights_only=False)["state_dict"] for p in (whole, parts))
+    for k, v in a.items():
+        assert torch.equal(v, b[k]), k
