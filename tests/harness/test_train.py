@@ -40,25 +40,31 @@ def test_compact_schedule_is_per_model_and_other_profiles_are_shared():
         train_config("second", "huge")
 
 
-def test_resumed_training_sums_its_seconds(tmp_path, monkeypatch):
-    """A run stopped after epoch 1 and resumed reports the time of both sessions."""
+def train_stopped_after_epoch_1(monkeypatch, *args, **kwargs) -> None:
+    """``train(*args, **kwargs)`` interrupted as its second epoch begins (its checkpoint holds epoch 1)."""
     import harness.train as train_mod
-    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=1)
     run_epoch = train_mod._run_epoch
 
-    def stop_at_epoch_1(*args, **kwargs):
-        if args[6] == 1:  # (net, ds, optimizer, scheduler, tcfg, seed, epoch, ...)
+    def stop_at_epoch_1(*a, **k):
+        if a[6] == 1:  # (net, ds, optimizer, scheduler, tcfg, seed, epoch, ...)
             raise KeyboardInterrupt
-        return run_epoch(*args, **kwargs)
+        return run_epoch(*a, **k)
 
     monkeypatch.setattr(train_mod, "_run_epoch", stop_at_epoch_1)
     with pytest.raises(KeyboardInterrupt):
-        train("pointpillars", data, tmp_path / "run", profile="tiny", seed=0, progress=False)
+        train(*args, **kwargs)
+    monkeypatch.setattr(train_mod, "_run_epoch", run_epoch)
+
+
+def test_resumed_training_sums_its_seconds(tmp_path, monkeypatch):
+    """A run stopped after epoch 1 and resumed reports the time of both sessions."""
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=1)
+    train_stopped_after_epoch_1(monkeypatch, "pointpillars", data, tmp_path / "run", profile="tiny", seed=0,
+                                progress=False)
     ckpt = tmp_path / "run" / "checkpoint.pt"
     state = torch.load(ckpt, weights_only=False)
     assert state["epoch"] == 1
     torch.save({**state, "train_seconds": 1000.0}, ckpt)  # a long first session
-    monkeypatch.setattr(train_mod, "_run_epoch", run_epoch)
     train("pointpillars", data, tmp_path / "run", profile="tiny", seed=0, progress=False)
     resumed = torch.load(ckpt, weights_only=False)
     assert resumed["epoch"] == 2 and 1000.0 < resumed["train_seconds"] < 1000.0 + 60
@@ -82,20 +88,10 @@ def test_two_stage_training_is_repeatable_whatever_the_global_rng(tmp_path):
 def test_resumed_two_stage_training_equals_an_uninterrupted_one(tmp_path, monkeypatch, model):
     """RoI sampling draws from the model's own generator: a training stopped after epoch 1 and
     resumed ends with the weights of one that ran through."""
-    import harness.train as train_mod
     data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=3)
     whole = train(model, data, tmp_path / "whole", profile="tiny", epochs=2, seed=0, progress=False)
-    run_epoch = train_mod._run_epoch
-
-    def stop_at_epoch_1(*args, **kwargs):
-        if args[6] == 1:
-            raise KeyboardInterrupt
-        return run_epoch(*args, **kwargs)
-
-    monkeypatch.setattr(train_mod, "_run_epoch", stop_at_epoch_1)
-    with pytest.raises(KeyboardInterrupt):
-        train(model, data, tmp_path / "parts", profile="tiny", epochs=2, seed=0, progress=False)
-    monkeypatch.setattr(train_mod, "_run_epoch", run_epoch)
+    train_stopped_after_epoch_1(monkeypatch, model, data, tmp_path / "parts", profile="tiny", epochs=2, seed=0,
+                                progress=False)
     parts = train(model, data, tmp_path / "parts", profile="tiny", epochs=2, seed=0, progress=False)
     a, b = (torch.load(p, weights_only=False)["state_dict"] for p in (whole, parts))
     for k, v in a.items():
