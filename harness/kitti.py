@@ -10,6 +10,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import re
 import tempfile
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -54,6 +55,21 @@ def atomic_write_bytes(path, data: bytes) -> Path:
         Path(tmp).unlink(missing_ok=True)
         raise
     return path
+
+
+# what atomic_write_bytes's mkstemp names look like: ".<target name>.<8 random chars>.tmp"
+_TEMP_NAME = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp$")
+
+
+def remove_temp_files(root) -> list[Path]:
+    """Delete the temp files under ``root`` that atomic writes ended by a kill left behind (never a
+    target: those are only ever replaced whole). Only for a folder no other process is writing to."""
+    removed = []
+    for path in sorted(Path(root).rglob(".*.tmp")):
+        if _TEMP_NAME.match(path.name) and path.is_file():
+            path.unlink(missing_ok=True)
+            removed.append(path)
+    return removed
 
 
 def atomic_write_text(path, text: str) -> Path:

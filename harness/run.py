@@ -7,11 +7,14 @@ per frame, training per epoch, prediction per frame).
 """
 from __future__ import annotations
 
+import fcntl
 import hashlib
+import heapq
 import json
 import os
 import threading
 import time
+from contextlib import contextmanager
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, replace
 from datetime import datetime, timezone
@@ -19,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.kitti import atomic_write_text
+from harness.kitti import atomic_write_text, remove_temp_files
 
 RUN_SCHEMA = "sotif-bench/run/1"
 GROUP_COLUMNS = ("weather", "time_of_day", "precipitation_class")
@@ -50,9 +53,9 @@ PROFILES = {
 }
 
 # Minutes of each model's jobs in the README's sample run (its stage table's totals): the job pool
-# starts the longest first, so that the jobs end together.
-_SAMPLE_MINUTES = {"second": 22, "dv_second": 21, "point_rcnn": 21, "pv_rcnn": 20, "mvx_net": 20, "pointpillars": 15,
-                   "parta2": 11}
+# starts the longest first, so that the jobs end together, and the ETA a run prints scales them.
+_SAMPLE_MINUTES = {"mvx_net": 26, "point_rcnn": 26, "pv_rcnn": 25, "second": 24, "dv_second": 24, "pointpillars": 18,
+                   "parta2": 16}
 
 
 def _digest(obj) -> str:
@@ -233,17 +236,27 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
     two models side by side finish sooner than one after the other), or in this process."""
     say = (lambda msg: print(msg, flush=True)) if progress else (lambda msg: None)
     jobs = max(1, min(cfg.jobs, len(names)))
-    order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(n, 10))
+    order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(n, 10)) if jobs > 1 else list(names)
     done: dict[str, tuple[dict, dict]] = {}
+    starts: dict[str, float] = {}  # a job starts when a slot frees: the pool takes them in order
+    ends: dict[str, float] = {}
+
+    def start_next(now: float) -> None:
+        queued = [n for n in order if n not in starts]
+        if queued:
+            starts[queued[0]] = now
 
     def finished(name: str, result) -> None:
         done[name] = result
-        elapsed = time.perf_counter() - t0
-        left = len(names) - len(done)
-        eta = f", ETA {elapsed / len(done) * left:.0f} s" if left else ""
-        say(f"== {name} done ({len(done)}/{len(names)} models, elapsed {elapsed:.0f} s{eta})")
+        now = time.perf_counter()
+        ends[name] = now
+        start_next(now)
+        left = _eta_seconds(order, starts, ends, now, jobs) if len(done) < len(names) else None
+        eta = f", ETA {left:.0f} s" if left is not None else ""
+        say(f"== {name} done ({len(done)}/{len(names)} models, elapsed {now - t0:.0f} s{eta})")
 
     if jobs == 1:
+        start_next(time.perf_counter())
         for i, name in enumerate(names, 1):
             say(f"== model {i}/{len(names)}: {name} (elapsed {time.perf_counter() - t0:.0f} s)")
             finished(name, _model_job(cfg, run_dir, name, train_hash, sotif_hash, runtime, progress, None, progress))
@@ -253,6 +266,8 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
     say(f"== {len(names)} models, {jobs} at a time with {threads} thread(s) each: {', '.join(order)}")
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_job_init,
                              initargs=(threads,)) as pool:
+        for _ in range(jobs):
+            start_next(time.perf_counter())
         pending = {pool.submit(_model_job, cfg, run_dir, n, train_hash, sotif_hash, runtime, progress, threads,
                                False): n for n in order}
         try:
@@ -264,6 +279,25 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
             pool.shutdown(wait=True, cancel_futures=True)
             raise
     return done
+
+
+def _eta_seconds(order: list[str], starts: dict[str, float], ends: dict[str, float], now: float,
+                 jobs: int) -> float:
+    """Seconds until the last of ``order``'s model jobs ends: each job is expected to take its
+    ``_SAMPLE_MINUTES`` scaled by how long the finished ones took against theirs (jobs of under a
+    minute, resumed from a previous run, do not count), the running ones less what they have run,
+    and the queued ones go to whichever of the ``jobs`` slots frees first."""
+    minutes = {n: _SAMPLE_MINUTES.get(n, 10) for n in order}
+    timed = [n for n in ends if ends[n] - starts[n] >= 60]
+    per_minute = (sum(ends[n] - starts[n] for n in timed) / sum(minutes[n] for n in timed)) if timed else 60.0
+    running = [n for n in order if n in starts and n not in ends]
+    free = [max(0.0, per_minute * minutes[n] - (now - starts[n])) for n in running]
+    free += [0.0] * max(0, jobs - len(free))
+    heapq.heapify(free)
+    for n in order:
+        if n not in starts:
+            heapq.heappush(free, heapq.heappop(free) + per_minute * minutes[n])
+    return max(free)
 
 
 def _gt_database(cfg: RunConfig, run_dir: Path, names: list[str]) -> None:
@@ -309,30 +343,50 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         cfg = replace(cfg, jobs=jobs)
     profile = cfg.profile
     run_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(run_dir / "config.json", json.dumps({**asdict(cfg), "models": names, "runtime": runtime}, indent=1))
-    stages = Stages(run_dir, progress)
-    t0 = time.perf_counter()
-    train_hash = _simulate(stages, cfg, run_dir / "data", "train")
-    sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
-    _gt_database(cfg, run_dir, names)
-    done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0)
-    summary = {}
-    for name in names:  # one model at a time: the latency figures own the machine
-        probe = _runtime_probe(stages, cfg, run_dir, name)
-        summary[name] = _model_summary(cfg, run_dir, name, *done[name], probe)
-    data_stats(run_dir)
-    ids = lambda s: len((run_dir / "data" / "sotif" / "ImageSets" / f"{s}.txt").read_text().split())
-    infos = {p.stem: json.loads(p.read_text())["info"] for p in sorted((run_dir / ".stages").glob("*.json"))}
-    result = {"schema": RUN_SCHEMA, "profile": profile, "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-              "config": asdict(cfg), "models": summary,
-              "data": {"n_test_frames": ids("test"), "n_val_frames": ids("val"),
-                       "n_train_frames": len((run_dir / "data" / "train" / "ImageSets" / "train.txt").read_text().split()),
-                       "stats": "tables/data_stats.csv"},
-              "stage_seconds": {n: i.get("seconds") for n, i in infos.items()},
-              "wall_seconds": _wall_span(infos)}
-    atomic_write_text(run_dir / "results.json", json.dumps(result, indent=1, default=str))
-    render(run_dir)
+    with _run_lock(run_dir):
+        stale = remove_temp_files(run_dir)
+        if stale and progress:
+            print(f"removed {len(stale)} temp file(s) of writes an interrupted run left unfinished", flush=True)
+        atomic_write_text(run_dir / "config.json", json.dumps({**asdict(cfg), "models": names, "runtime": runtime}, indent=1))
+        stages = Stages(run_dir, progress)
+        t0 = time.perf_counter()
+        train_hash = _simulate(stages, cfg, run_dir / "data", "train")
+        sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
+        _gt_database(cfg, run_dir, names)
+        done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0)
+        summary = {}
+        for name in names:  # one model at a time: the latency figures own the machine
+            probe = _runtime_probe(stages, cfg, run_dir, name)
+            summary[name] = _model_summary(cfg, run_dir, name, *done[name], probe)
+        data_stats(run_dir)
+        ids = lambda s: len((run_dir / "data" / "sotif" / "ImageSets" / f"{s}.txt").read_text().split())
+        infos = {p.stem: json.loads(p.read_text())["info"] for p in sorted((run_dir / ".stages").glob("*.json"))}
+        result = {"schema": RUN_SCHEMA, "profile": profile, "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                  "config": asdict(cfg), "models": summary,
+                  "data": {"n_test_frames": ids("test"), "n_val_frames": ids("val"),
+                           "n_train_frames": len((run_dir / "data" / "train" / "ImageSets" / "train.txt").read_text().split()),
+                           "stats": "tables/data_stats.csv"},
+                  "stage_seconds": {n: i.get("seconds") for n, i in infos.items()},
+                  "wall_seconds": _wall_span(infos)}
+        atomic_write_text(run_dir / "results.json", json.dumps(result, indent=1, default=str))
+        render(run_dir)
     return run_dir
+
+
+@contextmanager
+def _run_lock(run_dir: Path):
+    """Hold ``RUN/.lock`` for the run: a second run into the same folder stops with an error
+    instead of racing this one for its files."""
+    with open(run_dir / ".lock", "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"{run_dir}: another sotif-bench run is writing to this folder; "
+                             "wait for it to end or pass another --out") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _wall_span(infos: dict[str, dict]) -> float | None:

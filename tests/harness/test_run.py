@@ -63,10 +63,16 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     meta = read_frames_meta(out / "data/sotif/meta/frames.csv").set_index("frame_id")
     test_weathers = set(meta.loc[read_image_set(out / "data/sotif/ImageSets/test.txt"), "weather"])
     assert set(res["groups"]["rows"]) == test_weathers and len(test_weathers) > 15
-    # 3. nothing changed: every stage is skipped (records untouched), whatever the job count
+    # 3. nothing changed: every stage is skipped (records untouched), whatever the job count; the temp
+    # files of writes a kill cut short are cleared, files with other names are not
     before = stage_keys(out)
+    stale = [out / "models/.pointpillars.onnx.k2x_9q0a.tmp", out / "predictions/pointpillars/.000003.txt.abcdefgh.tmp"]
+    for path in stale:
+        path.write_bytes(b"half a file")
+    (out / ".notes.tmp").write_text("mine")
     run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
     assert stage_keys(out) == before
+    assert not any(path.exists() for path in stale) and (out / ".notes.tmp").read_text() == "mine"
     assert json.loads((out / "config.json").read_text())["jobs"] == 1
 
 
@@ -76,6 +82,32 @@ def test_wall_span_of_overlapping_stages():
              "c": {"seconds": 5.0, "finished": 104.0}}
     assert _wall_span(infos) == 125.0 - 95.0  # b starts first, ends last; a and c overlap it
     assert _wall_span({**infos, "old": {"seconds": 3.0}}) is None  # a record without the stamp
+
+
+def test_a_second_run_into_the_same_folder_is_refused(tmp_path):
+    from harness.run import _run_lock
+    (tmp_path / "results.json").write_text("{}")
+    with _run_lock(tmp_path):
+        with pytest.raises(ValueError, match=f"{tmp_path}: another sotif-bench run is writing to this folder"):
+            run(models=["pointpillars"], out=tmp_path, progress=False, config=TINY)
+    assert (tmp_path / "results.json").read_text() == "{}" and not (tmp_path / "config.json").exists()
+
+
+def test_eta_of_model_jobs():
+    from harness.run import _SAMPLE_MINUTES, _eta_seconds
+    m = _SAMPLE_MINUTES
+    a, b, c, d = sorted(m, key=m.get, reverse=True)[:4]
+    # two slots: a and b started at 0, a ended at 1.5 * its sample time (the machine runs 1.5x slow), c started then
+    t_a = 90.0 * m[a]
+    starts, ends = {a: 0.0, b: 0.0, c: t_a}, {a: t_a}
+    # b has 1.5 * 60 * m[b] - t_a left; c and d queue behind it on whichever slot frees first
+    left_b, left_c = 90.0 * m[b] - t_a, 90.0 * m[c]
+    expect = max(left_b + 90.0 * m[d], left_c) if left_b <= left_c else max(left_b, left_c + 90.0 * m[d])
+    assert _eta_seconds([a, b, c, d], starts, ends, t_a, 2) == pytest.approx(expect)
+    # one slot, nothing timed yet (a resumed job of a few seconds does not count): sample minutes as they are
+    assert _eta_seconds([a, b], {a: 0.0, b: 5.0}, {a: 5.0}, 5.0, 1) == pytest.approx(60.0 * m[b])
+    # a running job past its expected time counts as ending now
+    assert _eta_seconds([a, b], {a: 0.0, b: 0.0}, {a: t_a}, 10 * t_a, 2) == 0.0
 
 
 def test_bad_profile_and_model_names():
