@@ -15,7 +15,6 @@ import collections
 import contextlib
 import json
 import logging
-import os
 import tempfile
 import warnings
 from pathlib import Path
@@ -24,6 +23,7 @@ import numpy as np
 import onnx
 import torch
 
+from harness.kitti import atomic_write_bytes
 from models.base import Detector
 
 OPSET = 18
@@ -71,18 +71,6 @@ def op_histogram(model_proto: onnx.ModelProto) -> dict[str, int]:
         for node in fn.node:
             counts[node.op_type] += 1
     return dict(sorted(counts.items()))
-
-
-def _atomic_save(model_proto: onnx.ModelProto, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
-    try:
-        onnx.save(model_proto, tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def contract_metadata(model: Detector, metadata: dict[str, str]) -> dict[str, str]:
@@ -138,7 +126,7 @@ def export_onnx(model: Detector, path, metadata: dict[str, str]) -> dict[str, in
     del proto.metadata_props[:]
     for key, value in meta.items():
         proto.metadata_props.add(key=key, value=value)
-    _atomic_save(proto, path)
+    atomic_write_bytes(path, proto.SerializeToString())  # what onnx.save writes, via temp file + rename
     return hist
 
 

@@ -1,4 +1,5 @@
 import json
+import os
 
 import numpy as np
 import onnx
@@ -50,6 +51,9 @@ def test_export_writes_contract_metadata_and_matches_torch(tmp_path):
     assert [i.name for i in proto.graph.input] == ["points"]
     assert [o.name for o in proto.graph.output] == ["boxes", "scores"]
     assert not list(tmp_path.glob(".*tmp"))  # atomic write left no temp file
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (tmp_path / "toy.onnx").stat().st_mode & 0o777 == 0o666 & ~umask  # readable as any written file
     rng = np.random.default_rng(0)
     for n in (0, 5, 300):
         pts = (rng.random((n, 4)) * [30, 20, 4, 1] - [5, 10, 3, 0]).astype(np.float32)
