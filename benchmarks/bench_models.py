@@ -7,7 +7,7 @@ frames, ONNX size and parameter count; with ``--sotif`` also the headline AP40 a
 30-50 / 50-80 m bins on the SOTIF ClearNoon frames.
 
     python -m benchmarks.bench_models --out /tmp/bench [--models pointpillars,second]
-        [--train-data DIR] [--epochs N] [--heldout-frames 40] [--sotif]
+        [--train-data DIR] [--epochs N] [--heldout-frames 40] [--sotif] [--workers W]
 
 Data sets are simulated once under ``<out>/data`` (or taken from ``--train-data``); training
 resumes from / reuses ``<out>/runs/<model>/checkpoint.pt``.
@@ -60,13 +60,15 @@ def eager_latency(model, root: Path, split: str, frames: int) -> dict:
 def bench_model(name: str, args, train_root: Path, eval_root: Path, split: str) -> dict:
     from harness.evaluate import evaluate
     from harness.infer import predict
-    from harness.train import train
+    from harness.train import default_workers, train
     from models.export import export_checkpoint
     from models.zoo import count_parameters, load_checkpoint
 
     run = args.out / "runs" / name
     t0 = time.perf_counter()
-    ckpt = train(name, train_root, run, profile=args.profile, epochs=args.epochs.get(name), progress=True)
+    workers = args.workers or default_workers(name, args.profile)  # data-parallel, one thread each
+    ckpt = train(name, train_root, run, profile=args.profile, epochs=args.epochs.get(name), progress=True,
+                 workers=workers)
     meta = torch.load(ckpt, map_location="cpu", weights_only=False)
     onnx_path = export_checkpoint(ckpt, args.out / "models" / f"{name}.onnx", expected_model=name)
     pred = predict(onnx_path, eval_root, args.out / "predictions" / name, split=split, progress=False, threads=1)
@@ -74,6 +76,7 @@ def bench_model(name: str, args, train_root: Path, eval_root: Path, split: str) 
     model, _ = load_checkpoint(ckpt)
     eager = eager_latency(model, eval_root, split, args.latency_frames)
     row = {"model": name, "train_s": float(meta.get("train_seconds", time.perf_counter() - t0)),
+           "workers": meta.get("workers", 1),
            "epochs": meta["epoch"],
            "ap3d_mod": res["kitti"]["3d"]["0.7"]["R40"]["moderate"],
            "apbev_mod": res["kitti"]["bev"]["0.7"]["R40"]["moderate"],
@@ -125,6 +128,8 @@ def main(argv=None) -> int:
     p.add_argument("--heldout-frames", type=int, default=40)
     p.add_argument("--latency-frames", type=int, default=20)
     p.add_argument("--sotif", action="store_true")
+    p.add_argument("--workers", type=int, help="data-parallel training processes (default: one per core, "
+                                                "at most the batch size)")
     args = p.parse_args(argv)
     args.epochs = {k: int(v) for k, v in (kv.split("=") for kv in args.epochs.split(",") if kv)}
     torch.set_num_threads(1)

@@ -40,9 +40,10 @@ def cmd_simulate(a) -> int:
 
 
 def cmd_train(a) -> int:
-    from harness.train import train
+    from harness.train import default_workers, train
+    workers = a.workers or default_workers(a.model, a.profile, a.device)
     ckpt = train(a.model, Path(a.data), Path(a.out), profile=a.profile, epochs=a.epochs, device=a.device,
-                 seed=a.seed, progress=not a.quiet)
+                 seed=a.seed, progress=not a.quiet, workers=workers)
     print(f"checkpoint written to {ckpt}")
     return 0
 
@@ -127,6 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--epochs", type=int)
     s.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--workers", type=_positive_int,
+                   help="data-parallel processes, each with its share of the cores and of every batch "
+                        "(default: one per core, at most the batch size; 1 = one process)")
     s.set_defaults(func=cmd_train)
 
     s = sub.add_parser("export", help="export a checkpoint to one self-contained ONNX file")

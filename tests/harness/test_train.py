@@ -2,7 +2,9 @@ import numpy as np
 import pytest
 import torch
 
+from harness.augment import AugmentConfig
 from harness.dataset import write_synthetic_dataset
+from harness.gt_database import GtSamplingConfig
 from harness.train import train
 from models import zoo
 
@@ -96,3 +98,56 @@ def test_resumed_two_stage_training_equals_an_uninterrupted_one(tmp_path, monkey
     a, b = (torch.load(p, weights_only=False)["state_dict"] for p in (whole, parts))
     for k, v in a.items():
         assert torch.equal(v, b[k]), k
+
+
+NO_AUGMENTATION = AugmentConfig(flip_y=False, rotation=0.0, scale=(1.0, 1.0),
+                                gt_sampling=GtSamplingConfig(enabled=False))
+
+
+def test_data_parallel_training_takes_the_single_process_steps(tmp_path):
+    """Two workers, each with one frame of every batch (5 frames: the last batch leaves one worker
+    without a frame), end with the weights of one process that ran both frames of each batch."""
+    data = write_synthetic_dataset(tmp_path / "data", frames=6, seed=4, val=1)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # as each worker on a 2-core machine
+    try:
+        one = train("pointpillars", data, tmp_path / "one", profile="tiny", epochs=2, progress=False,
+                    aug=NO_AUGMENTATION)
+    finally:
+        torch.set_num_threads(threads)
+    two = train("pointpillars", data, tmp_path / "two", profile="tiny", epochs=2, progress=False,
+                aug=NO_AUGMENTATION, workers=2)
+    a, b = (torch.load(p, weights_only=False) for p in (one, two))
+    assert b["workers"] == 2 and b["epoch"] == 2 and "val_ap" in b
+    assert b["final_loss"] == pytest.approx(a["final_loss"], rel=1e-5)
+    params = dict(zoo.build("pointpillars", "tiny").named_parameters())
+    for k, v in a["state_dict"].items():
+        if k in params:
+            assert torch.allclose(v, b["state_dict"][k], rtol=1e-5, atol=1e-6), k
+        elif k.endswith("num_batches_tracked"):
+            assert torch.equal(v, b["state_dict"][k]), k  # every frame's forward counted once
+        else:  # running statistics: the workers' mean, not one sequence of updates
+            assert torch.isfinite(b["state_dict"][k]).all(), k
+    mtime = two.stat().st_mtime_ns
+    train("pointpillars", data, tmp_path / "two", profile="tiny", epochs=2, progress=False,
+          aug=NO_AUGMENTATION, workers=2)
+    assert two.stat().st_mtime_ns == mtime  # complete: nothing retrained, no worker started
+
+
+def test_a_data_parallel_worker_reports_a_bad_frame(tmp_path):
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=5)
+    bad = sorted((data / "training" / "velodyne").glob("*.bin"))[1]
+    bad.write_bytes(b"\0" * 10)  # not a whole number of (x, y, z, intensity) float32 points
+    with pytest.raises(ValueError, match=bad.name):
+        train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=1, progress=False,
+              aug=NO_AUGMENTATION, workers=2)
+    assert not (tmp_path / "run" / "checkpoint.pt").exists()
+
+
+def test_train_refuses_more_workers_than_frames_in_a_batch(tmp_path, capsys):
+    from harness.cli import main
+    data = write_synthetic_dataset(tmp_path / "data", frames=2, seed=6)
+    assert main(["--quiet", "train", "--model", "pointpillars", "--profile", "tiny", "--data", str(data),
+                 "--out", str(tmp_path / "run"), "--workers", "3"]) == 2
+    assert "workers must be between 1 and the batch size 2, got 3" in capsys.readouterr().err
+    assert not (tmp_path / "run").exists()
