@@ -179,6 +179,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from harness.malloc import keep_freed_memory
+    keep_freed_memory()
     from harness.infer import ContractError
     from harness.kitti import KittiError
     try:

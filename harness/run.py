@@ -216,6 +216,8 @@ def _job_init(threads: int) -> None:
     os.environ["OMP_NUM_THREADS"] = str(threads)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
+    from harness.malloc import keep_freed_memory
+    keep_freed_memory()
     import torch
     torch.set_num_threads(threads)
 

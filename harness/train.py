@@ -295,7 +295,9 @@ def _worker(rank: int, world: int, store: str, threads: int, parent: int, args: 
     """Data-parallel worker ``rank`` (of ``world``, spawned by ``_fit_data_parallel``); rank 0
     writes the checkpoint and shows the progress bar."""
     from harness.run import _exit_with_parent
+    from harness.malloc import keep_freed_memory
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+    keep_freed_memory()
     torch.set_num_threads(threads)
     model, data, out, profile, epochs, seed, aug = args
     dist.init_process_group("gloo", init_method=store, rank=rank, world_size=world, timeout=timedelta(minutes=30))
