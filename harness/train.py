@@ -336,7 +336,9 @@ def _fit_data_parallel(s: _Session, workers: int, args: tuple, progress: bool) -
                     p.terminate()
                     p.join()
         shutil.rmtree(tmp, ignore_errors=True)
-    state = torch.load(s.path, map_location="cpu", weights_only=False)
+    state = torch.load(s.path, map_location="cpu", weights_only=False) if s.path.is_file() else {"epoch": 0}
+    if state["epoch"] < s.tcfg.epochs:  # the workers were interrupted (SIGINT) and ended quietly
+        raise KeyboardInterrupt(f"data-parallel training stopped after epoch {state['epoch']} of {s.tcfg.epochs}")
     s.net.load_state_dict(state["state_dict"])
     return state
 
