@@ -212,10 +212,13 @@ def _model_job(cfg: RunConfig, run_dir: Path, name: str, train_hash: str, sotif_
     return tinfo, _predict_eval(stages, cfg, run_dir, name, sotif_hash, runtime, threads)
 
 
-def _job_init(threads: int) -> None:
+def _job_init(threads: int, parent: int | None = None) -> None:
+    """Set up a spawned job or training-worker process: ``threads`` threads, freed memory kept,
+    and an end once ``parent`` (the pid that started it; default: its parent now) is gone."""
     os.environ["OMP_NUM_THREADS"] = str(threads)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
+    parent = os.getppid() if parent is None else parent
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
     from harness.malloc import keep_freed_memory
     keep_freed_memory()
     import torch
@@ -267,7 +270,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
     threads = max(1, (os.cpu_count() or 1) // jobs)
     say(f"== {len(names)} models, {jobs} at a time with {threads} thread(s) each: {', '.join(order)}")
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_job_init,
-                             initargs=(threads,)) as pool:
+                             initargs=(threads, os.getpid())) as pool:
         for _ in range(jobs):
             start_next(time.perf_counter())
         pending = {pool.submit(_model_job, cfg, run_dir, n, train_hash, sotif_hash, runtime, progress, threads,

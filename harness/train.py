@@ -16,7 +16,6 @@ import math
 import os
 import shutil
 import tempfile
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass, replace
@@ -291,22 +290,20 @@ def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: 
     return state
 
 
-def _worker(rank: int, world: int, store: str, threads: int, parent: int, args: tuple, progress: bool) -> None:
-    """Data-parallel worker ``rank`` (of ``world``, spawned by ``_fit_data_parallel``); rank 0
-    writes the checkpoint and shows the progress bar."""
-    from harness.run import _exit_with_parent
-    from harness.malloc import keep_freed_memory
-    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
-    keep_freed_memory()
-    torch.set_num_threads(threads)
+def _worker(rank: int, world: int, tmp: str, threads: int, parent: int, args: tuple, progress: bool) -> None:
+    """Data-parallel worker ``rank`` (of ``world``, spawned by ``_fit_data_parallel``, which shares
+    the folder ``tmp`` with it); rank 0 writes the checkpoint and shows the progress bar."""
+    from harness.run import _job_init
+    _job_init(threads, parent)
     model, data, out, profile, epochs, seed, aug = args
-    dist.init_process_group("gloo", init_method=store, rank=rank, world_size=world, timeout=timedelta(minutes=30))
+    dist.init_process_group("gloo", init_method=f"file://{tmp}/store", rank=rank, world_size=world,
+                            timeout=timedelta(minutes=30))
     try:
         s = _session(model, data, out, profile, epochs, seed, aug)
         with _bar(s, model, profile, progress and rank == 0) as bar:
             _fit(s, seed, aug, bar, rank, world)
     except (ValueError, OSError) as e:  # bad input (a malformed frame, say): the message goes to the caller
-        atomic_write_bytes(Path(store.removeprefix("file://")).with_name(f"error-{rank}"), str(e).encode())
+        atomic_write_bytes(Path(tmp) / f"error-{rank}", str(e).encode())
         raise
     finally:
         dist.destroy_process_group()
@@ -320,7 +317,7 @@ def _fit_data_parallel(s: _Session, workers: int, args: tuple, progress: bool) -
     tmp = tempfile.mkdtemp(prefix="sotif-train-")
     ctx = None
     try:
-        ctx = mp.start_processes(_worker, args=(workers, f"file://{tmp}/store", threads, os.getpid(), args, progress),
+        ctx = mp.start_processes(_worker, args=(workers, tmp, threads, os.getpid(), args, progress),
                                  nprocs=workers, join=False, start_method="spawn")
         while not ctx.join(timeout=1):  # raises ProcessRaisedException / ProcessExitedException
             pass
