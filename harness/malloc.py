@@ -7,8 +7,8 @@ times (PointPillars, compact profile: about 7000 minor faults per one-frame step
 costly on sandboxed machines, and two processes faulting at once hold each other up: two
 PointPillars trainings side by side on 2 cores took 275 and 376 ms per one-frame step, against
 256 and 253 ms with the settings below, which keep freed memory in the heap (0 faults per step;
-median of 30 steps, one thread per process). The price is that a
-process keeps its peak heap until it ends.
+median of 30 steps, one thread per process). The price is that a process keeps its peak heap
+until it ends.
 """
 from __future__ import annotations
 
