@@ -104,9 +104,10 @@ NO_AUGMENTATION = AugmentConfig(flip_y=False, rotation=0.0, scale=(1.0, 1.0),
                                 gt_sampling=GtSamplingConfig(enabled=False))
 
 
-def test_data_parallel_training_takes_the_single_process_steps(tmp_path):
+def test_data_parallel_training_takes_the_single_process_steps(tmp_path, monkeypatch):
     """Two workers, each with one frame of every batch (5 frames: the last batch leaves one worker
-    without a frame), end with the weights of one process that ran both frames of each batch."""
+    without a frame), end with the weights of one process that ran both frames of each batch; and
+    so does a one-process training stopped after epoch 1 and resumed by two workers."""
     data = write_synthetic_dataset(tmp_path / "data", frames=6, seed=4, val=1)
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # as each worker on a 2-core machine
@@ -132,6 +133,23 @@ def test_data_parallel_training_takes_the_single_process_steps(tmp_path):
     train("pointpillars", data, tmp_path / "two", profile="tiny", epochs=2, progress=False,
           aug=NO_AUGMENTATION, workers=2)
     assert two.stat().st_mtime_ns == mtime  # complete: nothing retrained, no worker started
+
+    torch.set_num_threads(1)
+    try:
+        train_stopped_after_epoch_1(monkeypatch, "pointpillars", data, tmp_path / "resumed", profile="tiny",
+                                    epochs=2, progress=False, aug=NO_AUGMENTATION)
+    finally:
+        torch.set_num_threads(threads)
+    ckpt = tmp_path / "resumed" / "checkpoint.pt"
+    state = torch.load(ckpt, weights_only=False)
+    torch.save({**state, "train_seconds": 1000.0}, ckpt)  # marks the first session's checkpoint
+    resumed = train("pointpillars", data, tmp_path / "resumed", profile="tiny", epochs=2, progress=False,
+                    aug=NO_AUGMENTATION, workers=2)
+    c = torch.load(resumed, weights_only=False)
+    assert c["epoch"] == 2 and c["train_seconds"] > 1000  # resumed: the first session's seconds count
+    assert c["final_loss"] == pytest.approx(b["final_loss"], rel=1e-5)
+    for k in params:
+        assert torch.allclose(c["state_dict"][k], b["state_dict"][k], rtol=1e-5, atol=1e-6), k
 
 
 def test_a_data_parallel_worker_reports_a_bad_frame(tmp_path):
