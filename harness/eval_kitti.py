@@ -82,11 +82,12 @@ def image_box_overlap(boxes: np.ndarray, query: np.ndarray, criterion: int = -1)
 
 
 def _camera_boxes(labels: Labels) -> np.ndarray:
-    """KITTI camera boxes as LiDAR-like rows [x, z, -y_centre, l, w, h, ry] (overlaps are
-    invariant to the mirror this implies, since both sides of every overlap use it)."""
+    """KITTI camera boxes as rows [x, z, -y_centre, l, w, h, -ry] for the counter-clockwise box
+    functions of ``harness.boxes``. ``rotation_y`` turns a box about the camera's y axis (down),
+    which in the (x, z) plane is clockwise: the reference's ``rbbox_to_corners`` rotates by -ry."""
     h, w, l = labels.dimensions.T
     x, y, z = labels.location.T
-    return np.c_[x, z, -(y - h / 2), l, w, h, labels.rotation_y]
+    return np.c_[x, z, -(y - h / 2), l, w, h, -labels.rotation_y]
 
 
 def frame_overlaps(dt: Labels, gt: Labels) -> dict:

@@ -2,9 +2,11 @@
 import numpy as np
 import pytest
 
-from harness.eval_kitti import (DIFFICULTIES, Filter, build_eval_set, get_thresholds, image_box_overlap,
+from harness.boxes import iou_3d, iou_bev
+from harness.eval_kitti import (DIFFICULTIES, Filter, build_eval_set, frame_overlaps, get_thresholds,
+                                image_box_overlap,
                                 kitti_ap, precision_recall)
-from harness.kitti import Labels
+from harness.kitti import Labels, kitti_calib
 
 
 def labels(rows, score=None, alpha=None):
@@ -166,3 +168,53 @@ def test_frame_subsets_equal_separate_sets():
     assert a == b
     pr = precision_recall(es, "bev", DIFFICULTIES[1], 0.7)
     assert (np.diff(pr["precision"]) <= 1e-12).all()  # interpolated precision never rises
+
+
+def _reference_corners(x, z, l, w, ry):
+    """kitti_object_eval_python's rbbox_to_corners: the (l, w) rectangle turned by
+    [[cos, sin], [-sin, cos]] in the camera's (x, z) plane."""
+    c, s = np.cos(ry), np.sin(ry)
+    cx = np.array([-l, -l, l, l]) / 2
+    cz = np.array([-w, w, w, -w]) / 2
+    return np.c_[c * cx + s * cz + x, -s * cx + c * cz + z]
+
+
+def _reference_overlaps(dt: Labels, gt: Labels):
+    """BEV and 3D IoU as the reference computes them (shapely for the polygon intersection)."""
+    from shapely.geometry import Polygon
+    def poly(lab, i):
+        return Polygon(_reference_corners(lab.location[i, 0], lab.location[i, 2], lab.dimensions[i, 2],
+                                          lab.dimensions[i, 1], lab.rotation_y[i]))
+    bev, d3 = np.zeros((len(dt), len(gt))), np.zeros((len(dt), len(gt)))
+    for i in range(len(dt)):
+        for j in range(len(gt)):
+            inter = poly(dt, i).intersection(poly(gt, j)).area
+            (hd, wd, ld), (hg, wg, lg) = dt.dimensions[i], gt.dimensions[j]
+            bev[i, j] = inter / (ld * wd + lg * wg - inter)
+            # camera y points down: a box spans [y - h, y]
+            dy = min(dt.location[i, 1], gt.location[j, 1]) - max(dt.location[i, 1] - hd, gt.location[j, 1] - hg)
+            inc = inter * max(dy, 0.0)
+            d3[i, j] = inc / (ld * wd * hd + lg * wg * hg - inc)
+    return bev, d3
+
+
+def test_overlaps_of_turned_boxes_follow_the_reference_and_the_lidar_frame():
+    """BEV and 3D IoU of cars at random headings, 0.3-1.5 m apart: the evaluator's camera-frame
+    overlaps equal the reference's corner formula and the LiDAR-frame IoU of the same boxes."""
+    rng = np.random.default_rng(7)
+    k = 40
+    gt_lidar = np.c_[rng.uniform(5, 60, k), rng.uniform(-10, 10, k), rng.uniform(-1.2, -0.6, k),
+                     rng.uniform(3.5, 4.8, k), rng.uniform(1.6, 2.0, k), rng.uniform(1.3, 1.8, k),
+                     rng.uniform(-np.pi, np.pi, k)]
+    dt_lidar = gt_lidar + np.c_[rng.uniform(-1, 1, (k, 3)), rng.uniform(-0.3, 0.3, (k, 3)),
+                                rng.uniform(-0.4, 0.4, k)]
+    calib = kitti_calib()
+    gt = Labels.from_lidar(gt_lidar, calib, ["Car"] * k)
+    dt = Labels.from_lidar(dt_lidar, calib, ["Car"] * k, score=np.ones(k))
+    ov = frame_overlaps(dt, gt)
+    bev, d3 = _reference_overlaps(dt, gt)
+    assert (np.diag(bev) > 0.2).sum() > k // 2 and (np.abs(gt.rotation_y % (np.pi / 2)) > 0.05).sum() > k // 2
+    np.testing.assert_allclose(ov["bev"], bev, atol=1e-9)
+    np.testing.assert_allclose(ov["3d"], d3, atol=1e-9)
+    np.testing.assert_allclose(ov["bev"], iou_bev(dt_lidar, gt_lidar), atol=1e-9)
+    np.testing.assert_allclose(ov["3d"], iou_3d(dt_lidar, gt_lidar), atol=1e-9)
