@@ -30,6 +30,9 @@ from harness.eval_kitti import DIFFICULTIES, Filter, ap_r40, build_eval_set, fra
 from harness.kitti import KittiError, Labels, atomic_write_text, read_frames_meta, read_image_set, read_labels
 
 SCHEMA = "sotif-bench/results/1"
+# Bumped whenever a fix changes any number of the same predictions, so that a run directory
+# evaluated before it evaluates again (2: BEV/3D overlaps turn boxes by -rotation_y, as the reference)
+EVALUATOR_VERSION = 2
 ALL_DISTANCES = Filter("all")
 DISTANCE_BINS = (Filter("0-30", min_distance=0, max_distance=30), Filter("30-50", min_distance=30, max_distance=50),
                  Filter("50-80", min_distance=50, max_distance=80))

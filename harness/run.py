@@ -144,7 +144,7 @@ def _checkpoint_meta(ckpt: Path) -> dict:
 
 def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str,
                   threads: int | None = None) -> dict:
-    from harness.evaluate import evaluate, write_results
+    from harness.evaluate import EVALUATOR_VERSION, evaluate, write_results
     from harness.infer import predict
     onnx_path = run_dir / "models" / f"{name}.onnx"
     data = run_dir / "data" / "sotif"
@@ -165,7 +165,8 @@ def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, soti
                        meta=data / "meta" / "frames.csv", n_bootstrap=cfg.bootstrap, seed=cfg.seed)
         write_results(res_path, res)
         return {}
-    stages.run(f"evaluate_{name}", {**key, "bootstrap": cfg.bootstrap}, _evaluate, outputs=[res_path])
+    stages.run(f"evaluate_{name}", {**key, "bootstrap": cfg.bootstrap, "evaluator": EVALUATOR_VERSION}, _evaluate,
+               outputs=[res_path])
     return json.loads((pred / "predict.json").read_text())
 
 

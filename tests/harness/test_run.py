@@ -74,6 +74,11 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     assert stage_keys(out) == before
     assert not any(path.exists() for path in stale) and (out / ".notes.tmp").read_text() == "mine"
     assert json.loads((out / "config.json").read_text())["jobs"] == 1
+    # 4. an evaluator fix that moves numbers evaluates the same predictions again, and nothing else
+    monkeypatch.setattr("harness.evaluate.EVALUATOR_VERSION", 1000)
+    run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
+    after = stage_keys(out)
+    assert {k for k in after if after[k] != before[k]} == {"evaluate_pointpillars", "evaluate_point_rcnn"}
 
 
 def test_wall_span_of_overlapping_stages():
