@@ -31,6 +31,20 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _output_file(text: str) -> Path:
+    """A file path to write: not a folder, and no part of its parent path a file (checked before
+    any work, so that a long evaluation or export does not fail at its last step)."""
+    path = Path(text)
+    if path.is_dir():
+        raise ValueError(f"{path}: is a folder; expected a file path")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise ValueError(f"{parent}: is a file, so {path} cannot be written")
+            break
+    return path
+
+
 def cmd_simulate(a) -> int:
     from simulator import generate
     out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=_csv(a.weathers) if a.weathers else None,
@@ -53,7 +67,7 @@ def cmd_export(a) -> int:
     from models.zoo import MODEL_NAMES
     if a.model not in MODEL_NAMES:
         raise ValueError(f"unknown model {a.model!r}; expected one of {', '.join(MODEL_NAMES)}")
-    out = export_checkpoint(Path(a.checkpoint), Path(a.out), expected_model=a.model)
+    out = export_checkpoint(Path(a.checkpoint), _output_file(a.out), expected_model=a.model)
     print(f"ONNX written to {out}")
     return 0
 
@@ -70,6 +84,7 @@ def cmd_predict(a) -> int:
 def cmd_evaluate(a) -> int:
     from harness.evaluate import evaluate, format_table, write_results
     labels, predictions, split = a.labels, a.predictions, a.split
+    _output_file(a.output)
     if a.onnx:  # bring your own detector: predict on the data set, then evaluate
         from harness.infer import predict
         if not a.data:
@@ -108,7 +123,12 @@ def cmd_report(a) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="sotif-bench", description=__doc__.splitlines()[0])
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    # --quiet also after the subcommand (``sotif-bench evaluate --quiet ...``)
+    quiet = argparse.ArgumentParser(add_help=False)
+    quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS, help="no progress bars")
     sub = p.add_subparsers(dest="command", required=True)
+    add_parser = sub.add_parser
+    sub.add_parser = lambda *args, **kw: add_parser(*args, parents=[quiet], **kw)
 
     s = sub.add_parser("simulate", help="simulate the SOTIF test set or training scenes as a KITTI data set")
     s.add_argument("--preset", choices=["sotif", "train"], required=True)
@@ -158,7 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--data", help="with --onnx: the KITTI data set to run on")
     s.add_argument("--data-split", default="test", help="with --onnx: the split to run (default test)")
     s.add_argument("--runtime", choices=["onnxruntime", "openvino"], default="onnxruntime")
-    s.add_argument("--bootstrap", type=int, default=200, help="bootstrap resamples for 95%% intervals")
+    s.add_argument("--bootstrap", type=_positive_int, default=200, help="bootstrap resamples for 95%% intervals")
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_evaluate)
 
@@ -185,7 +205,8 @@ def main(argv=None) -> int:
     from harness.kitti import KittiError
     try:
         return args.func(args)
-    except (KittiError, ContractError, ValueError, FileNotFoundError, NotADirectoryError) as e:
+    except (KittiError, ContractError, ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError,
+            FileExistsError, PermissionError) as e:
         print(f"sotif-bench {args.command}: error: {e}", file=sys.stderr)
         return BAD_INPUT
     except KeyboardInterrupt:

@@ -107,15 +107,21 @@ def _recalls(gt, preds: dict, frames=None) -> dict:
     return {stage: recall_at_iou(gt, boxes, frames=frames) for stage, boxes in preds.items()}
 
 
-def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, column: str, n_boot: int, seed: int) -> dict:
+def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, meta_path, column: str, n_boot: int,
+                seed: int) -> dict:
     if column not in meta.columns:
-        raise ValueError(f"--group-by {column!r}: no such column in the meta table "
-                         f"(columns: {', '.join(map(str, meta.columns))})")
+        raise KittiError(meta_path, f"--group-by {column!r}: no such column "
+                                    f"(columns: {', '.join(map(str, meta.columns))})")
     by_id = meta.set_index("frame_id")[column]
-    missing = [i for i in ids if i not in by_id.index]
+    keys = [i.zfill(6) for i in ids]  # the table's ids are zero-padded to KITTI's six digits
+    missing = [i for i, k in zip(ids, keys) if k not in by_id.index]
     if missing:
-        raise ValueError(f"{len(missing)} frames of the split are not in the meta table (first: {missing[0]})")
-    values = by_id.loc[ids].to_numpy()
+        raise KittiError(meta_path, f"{len(missing)} frames of the split are not in the table (first: {missing[0]})")
+    values = by_id.loc[keys].to_numpy()
+    empty = [i for i, v in zip(ids, values) if pd.isna(v)]
+    if empty:
+        raise KittiError(meta_path, f"column {column!r} is empty for {len(empty)} frames of the split "
+                                    f"(first: {empty[0]})")
     rows = {}
     for value in pd.unique(values):
         frames = np.flatnonzero(values == value)
@@ -136,6 +142,8 @@ def evaluate(labels, predictions, split=None, group_by=None, meta=None,
     """Every metric of one prediction folder against one label folder (see module docstring).
 
     ``group_by``: one meta column or a list of them; the first also fills ``groups``."""
+    if n_bootstrap < 1:
+        raise ValueError(f"bootstrap resamples must be at least 1, got {n_bootstrap}")
     labels, predictions = label_dir(labels), Path(predictions)
     if not predictions.is_dir():
         raise KittiError(predictions, "prediction folder not found")
@@ -159,7 +167,8 @@ def evaluate(labels, predictions, split=None, group_by=None, meta=None,
         if meta is None:
             raise ValueError("--group-by needs --meta meta/frames.csv")
         table = read_frames_meta(meta)
-        result["groups_by"] = {c: _group_rows(es, gt, stage_boxes, ids, table, c, n_bootstrap, seed) for c in columns}
+        result["groups_by"] = {c: _group_rows(es, gt, stage_boxes, ids, table, meta, c, n_bootstrap, seed)
+                               for c in columns}
         result["groups"] = result["groups_by"][columns[0]]
     return result
 

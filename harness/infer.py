@@ -229,20 +229,51 @@ def _frame_inputs(det: OnnxDetector, root: Path, fid: str):
     return points, calib, image, l2i, hw
 
 
+def _inputs_digest(root: Path, ids) -> str:
+    """Identity of the frames a prediction reads: the data set's path and each input file's
+    size and modification time (a missing file counts as such; reading it fails later)."""
+    h = hashlib.sha256(str(root.resolve()).encode())
+    for fid in ids:
+        for kind in ("velodyne", "calib", "image_2"):
+            p = frame_path(root, kind, fid)
+            try:
+                st = p.stat()
+                h.update(f"{p.name} {st.st_size} {st.st_mtime_ns}\n".encode())
+            except FileNotFoundError:
+                h.update(f"{p.name} -\n".encode())
+    return h.hexdigest()[:16]
+
+
+def _result_files(out: Path) -> list[Path]:
+    """The files ``predict`` writes per frame: ``<id>.txt`` in ``out``, ``rois/`` and ``rcnn/``."""
+    return [p for d in (out, out / "rois", out / "rcnn") if d.is_dir()
+            for p in sorted(d.glob("*.txt")) if p.stem.isdigit()]
+
+
 def predict(onnx_path, data, out, split: str = "test", runtime: str = "onnxruntime",
             progress: bool = True, threads: int | None = None) -> dict:
     """Run a split through an ONNX detector; write ``out/<id>.txt`` (+ ``rois/``, ``rcnn/``)
-    and ``out/predict.json`` (latency p50/p90, frames/s). Resumes an interrupted run."""
+    and ``out/predict.json`` (latency p50/p90, frames/s). Resumes an interrupted run of the same
+    model, runtime, split and data set (``out/.progress.json``); results of another one are
+    replaced, and result files no earlier ``predict`` recorded are refused, not reused."""
     from tqdm import tqdm
 
     data, out = Path(data), Path(out)
     det = OnnxDetector(onnx_path, runtime=runtime, threads=threads)
     ids = read_image_set(data / "ImageSets" / f"{split}.txt")
-    stamp = {"onnx_sha256": det.info.sha256, "runtime": runtime, "split": split}
+    stamp = {"onnx_sha256": det.info.sha256, "runtime": runtime, "split": split, "data": _inputs_digest(data, ids)}
     progress_file = out / ".progress.json"
-    if progress_file.is_file() and json.loads(progress_file.read_text()) != stamp:
-        for old in out.rglob("*.txt"):
-            old.unlink()  # results of another model or split: start over
+    if progress_file.is_file():
+        try:
+            same = json.loads(progress_file.read_text()) == stamp
+        except ValueError:
+            same = False
+        if not same:
+            for old in _result_files(out):
+                old.unlink()  # results of another model, runtime, split or data set: start over
+    elif _result_files(out):
+        raise ValueError(f"{out}: holds result files ({_result_files(out)[0].name}, ...) that no earlier "
+                         "'sotif-bench predict' into this folder recorded; remove them or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(progress_file, json.dumps(stamp))
     latencies, n_points = [], []

@@ -89,6 +89,8 @@ def _read_text(path) -> str:
         return path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise KittiError(path, "file not found") from None
+    except IsADirectoryError:
+        raise KittiError(path, "is a folder, not a file") from None
     except UnicodeDecodeError as e:
         raise KittiError(path, f"not a text file ({e.reason})") from None
 
@@ -388,10 +390,17 @@ def write_image(path, rgb: np.ndarray) -> Path:
 # ----------------------------------------------------------------------------- ImageSets, meta
 def read_image_set(path) -> list[str]:
     path = Path(path)
-    ids = [line.strip() for line in _read_text(path).splitlines() if line.strip()]
-    for no, fid in enumerate(ids, start=1):
+    ids, line_of = [], {}
+    for no, line in enumerate(_read_text(path).splitlines(), start=1):
+        fid = line.strip()
+        if not fid:
+            continue
         if not fid.isdigit():
             raise KittiError(path, f"frame id {fid!r} is not a number", no)
+        if fid in line_of:
+            raise KittiError(path, f"frame id {fid} is listed twice (lines {line_of[fid]} and {no})", no)
+        line_of[fid] = no
+        ids.append(fid)
     return ids
 
 
@@ -410,6 +419,10 @@ def read_frames_meta(path) -> pd.DataFrame:
     if "frame_id" not in df.columns:
         raise KittiError(path, "no frame_id column")
     df["frame_id"] = df["frame_id"].str.zfill(6)
+    twice = df["frame_id"][df["frame_id"].duplicated()]
+    if len(twice):
+        rows = (np.flatnonzero(df["frame_id"] == twice.iloc[0]) + 2).tolist()  # + header, 1-based
+        raise KittiError(path, f"frame_id {twice.iloc[0]} appears more than once (lines {', '.join(map(str, rows))})")
     return df
 
 

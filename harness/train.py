@@ -182,7 +182,7 @@ def _data_parallel_backward(net, samples: list, batch_frames: int) -> float:
 
 
 def validation_ap(net, data: Path, max_frames: int | None = None) -> dict:
-    """AP40 (3D / BEV, IoU 0.7) of the eager model on the ``val`` split with the lead's KITTI
+    """AP40 (3D / BEV, IoU 0.7) of the eager model on the ``val`` split with the project's KITTI
     evaluator: KITTI moderate and the headline (all distances, height filter off)."""
     from harness.eval_kitti import build_eval_set, kitti_ap
     from harness.evaluate import _summary

@@ -69,6 +69,26 @@ def test_cli_evaluate_writes_json_and_exit_codes(tmp_path, dataset, capsys):
                  "--meta", str(dataset / "meta" / "frames.csv"), "--output", str(out)]) == 2
 
 
+def test_cli_evaluate_refuses_bad_paths_and_tables_before_work(tmp_path, dataset, capsys):
+    pred = copy_as_predictions(dataset, tmp_path / "pred")
+    args = ["evaluate", "--quiet", "--labels", str(dataset), "--predictions", str(pred)]  # --quiet after the command
+    (tmp_path / "a_file").write_text("mine")
+    for output, message in ((tmp_path, "is a folder; expected a file path"),
+                            (tmp_path / "a_file" / "r.json", "a_file: is a file")):
+        assert main(args + ["--output", str(output)]) == 2
+        assert message in capsys.readouterr().err
+    assert (tmp_path / "a_file").read_text() == "mine"
+    with pytest.raises(SystemExit):
+        main(args + ["--output", str(tmp_path / "r.json"), "--bootstrap", "0"])
+    meta = (dataset / "meta" / "frames.csv").read_text().splitlines()
+    (tmp_path / "empty_cell.csv").write_text("\n".join([meta[0], meta[1].replace("ClearNoon", ""), *meta[2:]]) + "\n")
+    (tmp_path / "short_ids.csv").write_text("\n".join([meta[0]] + [str(int(m[:6])) + m[6:] for m in meta[1:]]) + "\n")
+    grouped = args + ["--output", str(tmp_path / "r.json"), "--group-by", "weather", "--meta"]
+    assert main(grouped + [str(tmp_path / "empty_cell.csv")]) == 2
+    assert "empty_cell.csv: column 'weather' is empty for 1 frames of the split (first: 000000)" in capsys.readouterr().err
+    assert main(grouped + [str(tmp_path / "short_ids.csv")]) == 0  # ids padded to six digits match
+
+
 def test_cli_evaluate_bring_your_own_onnx(make_onnx, tmp_path, dataset):
     onnx_path = make_onnx(tmp_path / "mine.onnx")
     out = tmp_path / "byo" / "results.json"

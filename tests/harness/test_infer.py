@@ -57,6 +57,31 @@ def test_predict_writes_kitti_results_and_resumes(make_onnx, tmp_path, dataset):
     assert again["n_timed"] == 1  # only the missing frame ran
 
 
+def test_predict_into_a_folder_of_other_results(make_onnx, tmp_path, dataset):
+    """Results of another data set are replaced, never reused; result files no earlier predict
+    recorded are refused and left alone; files of other names stay."""
+    from tests.harness.conftest import make_dataset
+    onnx_path = make_onnx(tmp_path / "c.onnx", two_stage=True)
+    out = tmp_path / "pred"
+    predict(onnx_path, dataset, out, progress=False)
+    (out / "notes.md").write_text("mine")
+    other = make_dataset(tmp_path / "other", seed=9)
+    summary = predict(onnx_path, other, out, progress=False)
+    assert summary["n_timed"] == 6  # every frame again
+    calib = kitti.read_calib(kitti.frame_path(other, "calib", "000000"))
+    pts = kitti.read_points(kitti.frame_path(other, "velodyne", "000000"))
+    res = kitti.read_labels(out / "000000.txt", with_score=True)
+    np.testing.assert_allclose(res.to_lidar(calib)[0, :3], pts[:, :3].mean(axis=0), atol=2e-3)
+    assert (out / "notes.md").read_text() == "mine"
+
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "000001.txt").write_text("Car 0 0 0 0 0 10 10 1.5 1.6 3.9 0 1.6 20 0 0.5\n")
+    with pytest.raises(ValueError, match=r"foreign: holds result files \(000001\.txt"):
+        predict(onnx_path, dataset, foreign, progress=False)
+    assert sorted(p.name for p in foreign.iterdir()) == ["000001.txt"]
+
+
 def test_openvino_runtime_agrees_with_onnxruntime(make_onnx, tmp_path):
     pytest.importorskip("openvino")
     path = make_onnx(tmp_path / "c.onnx", two_stage=True)

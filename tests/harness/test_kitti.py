@@ -123,6 +123,17 @@ def test_image_sets_meta_and_images(tmp_path):
     kitti.write_frames_meta(tmp_path / "meta/frames.csv", df)
     back = kitti.read_frames_meta(tmp_path / "meta/frames.csv")
     assert back["frame_id"].tolist() == ["000001", "000002"]
+    (tmp_path / "split.txt").write_text("000001\n\n000002\n\nabc\n")
+    with pytest.raises(KittiError, match=r"split\.txt:5: frame id 'abc' is not a number"):
+        kitti.read_image_set(tmp_path / "split.txt")  # the line of the file, blank lines counted
+    (tmp_path / "split.txt").write_text("000001\n000002\n000001\n")
+    with pytest.raises(KittiError, match=r"split\.txt:3: frame id 000001 is listed twice \(lines 1 and 3\)"):
+        kitti.read_image_set(tmp_path / "split.txt")
+    with pytest.raises(KittiError, match=r"ImageSets: is a folder"):
+        kitti.read_image_set(tmp_path / "ImageSets")
+    (tmp_path / "dup.csv").write_text("frame_id,weather\n000001,A\n000002,B\n1,C\n")
+    with pytest.raises(KittiError, match=r"dup\.csv: frame_id 000001 appears more than once \(lines 2, 4\)"):
+        kitti.read_frames_meta(tmp_path / "dup.csv")
     img = np.random.default_rng(0).integers(0, 255, (8, 10, 3), dtype=np.uint8)
     p = kitti.write_image(tmp_path / "i.png", img)
     np.testing.assert_array_equal(kitti.read_image(p), img)
