@@ -114,7 +114,7 @@ def check_contract(path) -> ContractInfo:
     """Validate an ONNX file against the contract of DESIGN.md; raise ContractError if it breaks it."""
     path = Path(path)
     if not path.is_file():
-        raise ContractError(path, "file not found")
+        raise ContractError(path, "is a folder, not an ONNX file" if path.is_dir() else "file not found")
     try:
         model = onnx.load(str(path), load_external_data=False)
     except Exception as e:  # noqa: BLE001 - onnx raises several kinds of decode errors

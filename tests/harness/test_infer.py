@@ -29,6 +29,8 @@ def test_contract_refuses_garbage_and_missing(tmp_path):
         check_contract(tmp_path / "junk.onnx")
     with pytest.raises(ContractError, match="file not found"):
         check_contract(tmp_path / "none.onnx")
+    with pytest.raises(ContractError, match="is a folder, not an ONNX file"):
+        check_contract(tmp_path)
 
 
 def test_detector_runs_and_rejects_nan_outputs(make_onnx, tmp_path):
