@@ -96,3 +96,62 @@ def test_cli_evaluate_bring_your_own_onnx(make_onnx, tmp_path, dataset):
     assert json.loads(out.read_text())["n_frames"] == 6
     bad = make_onnx(tmp_path / "bad.onnx", metadata={})
     assert main(["--quiet", "predict", "--onnx", str(bad), "--data", str(dataset), "--out", str(tmp_path / "p")]) == 2
+
+
+def _random_frames(root, frames: int, seed: int) -> list[str]:
+    """Label and result folders of cars at random headings and distances: Vans, Pedestrians,
+    DontCare regions with false positives inside, occlusion, truncation, noisy detections (some
+    turned by pi, some named Van) and pure false positives."""
+    rng = np.random.default_rng(seed)
+    calib = kitti.kitti_calib()
+    ids = []
+    for f in range(frames):
+        fid = f"{f:06d}"
+        ids.append(fid)
+        k = int(rng.integers(0, 7))
+        boxes = np.c_[rng.uniform(5, 60, k), rng.uniform(-15, 15, k), rng.uniform(-1.0, -0.7, k),
+                      rng.uniform(3.5, 4.8, k), rng.uniform(1.6, 2.0, k), rng.uniform(1.3, 1.8, k),
+                      rng.uniform(-np.pi, np.pi, k)]
+        names = rng.choice(["Car"] * 6 + ["Van", "Pedestrian", "DontCare"], k)
+        gt = kitti.Labels.from_lidar(boxes, calib, list(names), truncated=rng.choice([0, 0, 0.1, 0.2, 0.4], k),
+                                     occluded=rng.choice([0, 0, 1, 2, 3], k))
+        lines = [line for line, name in zip(kitti.format_labels(gt).splitlines(), names) if name != "DontCare"]
+        for b in gt.bbox[names == "DontCare"]:
+            lines.append(f"DontCare -1 -1 -10 {b[0] - 20:.2f} {b[1] - 20:.2f} {b[2] + 20:.2f} {b[3] + 20:.2f} "
+                         "-1 -1 -1 -1000 -1000 -1000 -10")
+        (root / "gt").mkdir(parents=True, exist_ok=True)
+        (root / "gt" / f"{fid}.txt").write_text("".join(line + "\n" for line in lines))
+        seen = rng.random(k) < 0.8
+        noisy = boxes[seen] + np.c_[rng.normal(0, 0.15, (seen.sum(), 2)), rng.normal(0, 0.05, seen.sum()),
+                                    boxes[seen, 3:6] * rng.uniform(-0.06, 0.06, (seen.sum(), 3)),
+                                    rng.normal(0, 0.1, seen.sum()) + np.pi * (rng.random(seen.sum()) < 0.1)]
+        det_names = np.where(rng.random(seen.sum()) < 0.85, names[seen], rng.choice(["Car", "Van"], seen.sum()))
+        det_names = np.where(det_names == "DontCare", "Car", det_names)  # a car found inside a DontCare region
+        m = int(rng.integers(0, 4))
+        fps = np.c_[rng.uniform(5, 75, m), rng.uniform(-15, 15, m), np.full(m, -0.85), np.tile([4.0, 1.8, 1.5], (m, 1)),
+                    rng.uniform(-3, 3, m)]
+        dt = kitti.Labels.from_lidar(np.r_[noisy, fps], calib, [*det_names, *rng.choice(["Car", "Car", "Van"], m)],
+                                     score=rng.random(len(noisy) + m))
+        kitti.write_labels(root / "dt" / f"{fid}.txt", dt)
+    return ids
+
+
+def _flat(d, prefix=""):
+    out = {}
+    for k, v in d.items():
+        out.update(_flat(v, f"{prefix}{k}.") if isinstance(v, dict) else {f"{prefix}{k}": v})
+    return out
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_evaluate_equals_an_independent_port_of_the_reference(tmp_path, seed):
+    """Every kitti.*, headline.* and distance.* number on 40 random frames (random headings)
+    equals the loop-per-object port of kitti_object_eval_python in tests/harness/kitti_reference.py."""
+    from tests.harness.kitti_reference import evaluate_folders
+    ids = _random_frames(tmp_path, 40, seed)
+    ours = _flat(evaluate(tmp_path / "gt", tmp_path / "dt", n_bootstrap=1))
+    reference = evaluate_folders(tmp_path / "gt", tmp_path / "dt", ids)
+    assert len(reference) == 64
+    assert all(0 < reference[f"kitti.{m}.0.7.R40.moderate"] < 100 for m in ("bbox", "bev", "3d", "aos"))
+    for key, value in reference.items():
+        assert ours[key] == pytest.approx(value, abs=1e-9), key
