@@ -27,7 +27,7 @@ from simulator.road import RoadConfig
 from simulator.scenario import SotifConfig, TrainConfig
 from simulator.weather import DRY_PRESETS, WEATHER_PRESETS
 
-GENERATOR_VERSION = "1.2"  # bump whenever the same seed gives other bytes
+GENERATOR_VERSION = "1.3"  # bump whenever the same seed gives other bytes
 PRESETS = ("sotif", "train")
 LIDAR_MODELS = ("physics", "carla")
 SOTIF_FRAMES, SOTIF_VAL = 547, 55
@@ -144,6 +144,27 @@ def _resumable(root: Path, job: FrameJob, digest: str) -> dict | None:
     return rec
 
 
+def remove_stale_frames(root: Path, frame_ids: set[str]) -> int:
+    """Delete the frames an earlier generation into ``root`` made that this one does not plan
+    (e.g. it asks for fewer frames): the files its frame records list, then the records. Files
+    no record lists are left alone. Returns the number of frames removed."""
+    removed = 0
+    for rec_path in sorted((root / "meta" / "frames").glob("*.json")):
+        if rec_path.stem in frame_ids:
+            continue
+        try:
+            files = json.loads(rec_path.read_text()).get("files", {})
+        except (OSError, ValueError, AttributeError):
+            continue  # not a record of ours
+        for rel in files:
+            p = (root / rel).resolve()
+            if p.parent.parent == (root / "training").resolve() and p.stem == rec_path.stem:
+                p.unlink(missing_ok=True)
+        rec_path.unlink()
+        removed += 1
+    return removed
+
+
 def run_job(args) -> dict:
     """Make (or resume) one frame; returns its record {"config", "row", "files": {path: sha256}}."""
     root, cfg, job, digest = args
@@ -205,6 +226,7 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     (root / "meta" / "frames").mkdir(parents=True, exist_ok=True)
     digest = cfg.digest()
     jobs = [(root, cfg, job, digest) for job in plan_jobs(cfg)]
+    remove_stale_frames(root, {job.frame_id for _, _, job, _ in jobs})
     bar = tqdm(total=len(jobs), desc=f"simulate {preset}", unit="frame", disable=not progress)
     records = []
     if workers == 1:

@@ -1,12 +1,16 @@
 """KITTI labels of a frame: 3D boxes from the vehicle meshes, 2D boxes, truncation, occlusion.
 
 - 2D box: the box's projected corners (near-clipped), clipped to the image.
-- truncation: share of the unclipped projected box area outside the image.
+- truncation: share of the object's volume (a lattice of points in its 3D box) that the camera
+  does not see in its image: outside the image or behind the camera.
 - occlusion: share v of the object's camera rays (a grid over its 2D box, cast against the
   object alone) whose first hit in the full scene is the object: 0 if v >= 0.75,
   1 if v >= 0.4, 2 if v >= 0.05, else 3.
 - DontCare (as KITTI): objects in the image but beyond `max_label_distance`, or not visible.
-- Objects outside the camera's image are not labelled.
+  Their rows come after every object row, as in KITTI's files (OpenPCDet's and MMDetection3D's
+  loaders take the first rows as the objects); unlike KITTI's placeholders they keep the
+  vehicle's 3D box, which training uses as a region whose anchors are neither car nor background.
+- Objects outside the camera's image are not labelled. Rows are ordered by distance.
 """
 from __future__ import annotations
 
@@ -21,6 +25,7 @@ from simulator.raycast import RayScene, rays_hit_triangles
 from simulator.vehicles import Vehicle
 
 OCCLUSION_LEVELS = (0.75, 0.4, 0.05)  # visible share thresholds for levels 0, 1, 2
+TRUNCATION_GRID = 8  # lattice points per box side for the truncation share
 
 
 @dataclass(frozen=True)
@@ -53,14 +58,36 @@ def projected_boxes(boxes: np.ndarray, calib: Calib) -> tuple[np.ndarray, np.nda
     return np.concatenate([uv.min(1), uv.max(1)], 1), front
 
 
-def truncation(raw: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Clipped boxes and the share of each raw box's area outside the image."""
-    clipped = np.stack([np.clip(raw[:, 0], 0, width - 1), np.clip(raw[:, 1], 0, height - 1),
-                        np.clip(raw[:, 2], 0, width - 1), np.clip(raw[:, 3], 0, height - 1)], 1)
-    area = lambda b: np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)
-    raw_area = area(raw)
-    share = np.where(raw_area > 0, 1.0 - area(clipped) / np.maximum(raw_area, 1e-9), 1.0)
-    return clipped, np.clip(share, 0.0, 1.0)
+def clip_boxes(raw: np.ndarray, width: int, height: int) -> np.ndarray:
+    """2D boxes (K, 4) clipped to the image."""
+    return np.stack([np.clip(raw[:, 0], 0, width - 1), np.clip(raw[:, 1], 0, height - 1),
+                     np.clip(raw[:, 2], 0, width - 1), np.clip(raw[:, 3], 0, height - 1)], 1)
+
+
+def box_lattice(boxes: np.ndarray, grid: int = TRUNCATION_GRID) -> np.ndarray:
+    """(K, grid**3, 3) LiDAR-frame points at the cell centres of a grid x grid x grid split of each box."""
+    f = (np.arange(grid) + 0.5) / grid - 0.5
+    unit = np.stack(np.meshgrid(f, f, f, indexing="ij"), -1).reshape(-1, 3)
+    local = unit[None] * boxes[:, None, 3:6]
+    c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
+    return np.stack([local[..., 0] * c - local[..., 1] * s + boxes[:, None, 0],
+                     local[..., 0] * s + local[..., 1] * c + boxes[:, None, 1],
+                     local[..., 2] + boxes[:, None, 2]], -1)
+
+
+def truncation(boxes: np.ndarray, calib: Calib, width: int, height: int, grid: int = TRUNCATION_GRID) -> np.ndarray:
+    """(K,) share of each box's volume outside the camera image (or behind the camera), from a
+    lattice of grid**3 points: KITTI's truncation, "the object leaving image boundaries". The
+    area of the unclipped 2D box would overstate it for an object beside the camera, whose
+    corners behind the image plane project far out."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    pts = box_lattice(boxes, grid)
+    uv, depth = calib.project_rect(calib.lidar_to_rect(pts.reshape(-1, 3)))
+    uv, depth = uv.reshape(pts.shape[:2] + (2,)), depth.reshape(pts.shape[:2])
+    with np.errstate(invalid="ignore"):
+        seen = ((depth > 0.1) & (uv[..., 0] >= 0) & (uv[..., 0] <= width - 1)
+                & (uv[..., 1] >= 0) & (uv[..., 1] <= height - 1))
+    return 1.0 - seen.mean(1)
 
 
 def occlusion_level(visible: np.ndarray) -> np.ndarray:
@@ -98,7 +125,8 @@ def frame_labels(scene: RayScene, vehicles: list[Vehicle], pose: Pose, mount_hei
     if not vehicles:
         return Labels.empty(), rows
     raw, front = projected_boxes(boxes, calib)
-    clipped, trunc = truncation(raw, cfg.width, cfg.height)
+    clipped = clip_boxes(raw, cfg.width, cfg.height)
+    trunc = truncation(boxes, calib, cfg.width, cfg.height)
     in_image = front & (clipped[:, 2] - clipped[:, 0] >= 1) & (clipped[:, 3] - clipped[:, 1] >= 1)
     order = np.argsort(np.linalg.norm(boxes[:, :2], axis=1), kind="stable")
     keep, names, occ = [], [], []
@@ -107,11 +135,11 @@ def frame_labels(scene: RayScene, vehicles: list[Vehicle], pose: Pose, mount_hei
             continue
         vis = visible_share(scene, int(k), clipped[k], calib, pose, mount_height, cfg.occlusion_grid)
         far = np.linalg.norm(boxes[k, :2]) > cfg.max_label_distance
-        rows[k] = len(keep)
         keep.append(k)
         names.append("DontCare" if far or vis <= 0 else vehicles[k].label)
         occ.append(int(occlusion_level(np.array([vis]))[0]))
-    keep = np.array(keep, dtype=int)
-    labels = Labels.from_lidar(boxes[keep], calib, names, bbox=clipped[keep], truncated=trunc[keep],
-                               occluded=np.array(occ, dtype=int))
+    last = np.argsort([n == "DontCare" for n in names], kind="stable")  # objects by distance, then DontCare
+    keep, names, occ = np.array(keep, dtype=int)[last], [names[i] for i in last], np.array(occ, dtype=int)[last]
+    rows[keep] = np.arange(len(keep))
+    labels = Labels.from_lidar(boxes[keep], calib, names, bbox=clipped[keep], truncated=trunc[keep], occluded=occ)
     return labels, rows

@@ -32,6 +32,8 @@ def test_files_parse_with_the_project_reader(sotif_set):
         pts = kitti.read_points(kitti.frame_path(sotif_set, "velodyne", fid))
         assert len(pts) == row["n_points"] and (pts[:, 3] >= 0).all() and (pts[:, 3] <= 1).all()
         labels = kitti.read_labels(kitti.frame_path(sotif_set, "label_2", fid))
+        dontcare = np.asarray(labels.name) == "DontCare"
+        assert not (dontcare[:-1] & ~dontcare[1:]).any()  # as KITTI: DontCare rows after every object row
         calib = kitti.read_calib(kitti.frame_path(sotif_set, "calib", fid))
         assert kitti.read_image(kitti.frame_path(sotif_set, "image_2", fid)).shape == (375, 1242, 3)
         # before the lane change the fast car leads in the ego lane, at the end the slow car does
@@ -74,6 +76,22 @@ def test_training_scenes_with_another_sensor(tmp_path):
     assert set(meta["weather"]) <= {"ClearNoon", "CloudyNoon"} and set(meta["scenario"]) == {"train"}
     assert meta["lane_change_time_s"].isna().all() and (meta["slow_car_label_index"] == -1).all()
     assert kitti.read_image_set(out / "ImageSets" / "test.txt") == []
+
+
+def test_fewer_frames_into_the_same_folder_remove_the_extra_ones(tmp_path):
+    """Frames an earlier, longer generation made go (their files and records); files of no record stay."""
+    spec = LidarSpec(name="VLP-16-like", elevations_deg=tuple(np.linspace(15.0, -15.0, 16)), azimuth_step_deg=0.4)
+    out = generate(tmp_path / "t", "train", frames=3, seed=1, progress=False, lidar_spec=spec)
+    mine = out / "training" / "velodyne" / "000007.bin"
+    mine.write_bytes(b"\0" * 16)
+    generate(out, "train", frames=2, seed=1, progress=False, lidar_spec=spec)
+    for kind in ("velodyne", "image_2", "calib", "label_2"):
+        assert sorted(p.stem for p in (out / "training" / kind).iterdir()) == ["000000", "000001"] + (
+            ["000007"] if kind == "velodyne" else [])
+    assert sorted(p.stem for p in (out / "meta" / "frames").iterdir()) == ["000000", "000001"]
+    assert mine.read_bytes() == b"\0" * 16
+    files = json.loads((out / "meta" / "dataset.json").read_text())["files"]
+    assert not any("000002" in f for f in files)
 
 
 def test_frame_counts():

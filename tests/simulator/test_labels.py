@@ -1,8 +1,8 @@
 import numpy as np
-from shapely.geometry import box as shapely_box
 
 from harness.kitti import kitti_calib, project_boxes_2d
-from simulator.labels import frame_labels, lidar_boxes, occlusion_level, projected_boxes, truncation, visible_share
+from simulator.labels import (clip_boxes, frame_labels, lidar_boxes, occlusion_level, projected_boxes, truncation,
+                               visible_share)
 from simulator.lidar import LidarSpec, scan
 from simulator.raycast import STATIC
 from simulator.road import RoadConfig, lane_center, road_to_world
@@ -45,6 +45,18 @@ def test_projected_points_of_a_car_fall_in_its_2d_box(highway_scene):
     np.testing.assert_allclose(labels.to_lidar(CALIB)[rows], lidar_boxes(vehicles, pose, 1.73), atol=2e-4)
 
 
+def test_dontcare_rows_come_after_the_objects(highway_scene):
+    """KITTI's order, which OpenPCDet's and MMDetection3D's loaders rely on: every object row, by
+    distance, then the DontCare rows (here a car beyond the 80 m label distance)."""
+    pose = _pose()
+    vehicles = [_veh(pose, 30, 0.0), _veh(pose, 95, 3.5), _veh(pose, 60, -3.5), _veh(pose, 12, 3.5)]
+    highway_scene.set_vehicles(vehicles)
+    labels, rows = frame_labels(highway_scene, vehicles, pose, 1.73, CALIB)
+    assert list(labels.name) == ["Car", "Car", "Car", "DontCare"]
+    assert rows.tolist() == [1, 3, 2, 0]
+    np.testing.assert_allclose(labels.to_lidar(CALIB)[rows], lidar_boxes(vehicles, pose, 1.73), atol=2e-4)
+
+
 def test_occlusion_rises_behind_a_truck(highway_scene):
     pose = _pose()
     car = _veh(pose, 40, 0)
@@ -61,15 +73,27 @@ def test_occlusion_rises_behind_a_truck(highway_scene):
     assert levels[0] == 0 and levels[0] <= levels[1] <= levels[2] and levels[2] >= 2
 
 
-def test_truncation_matches_shapely():
+def test_truncation_is_the_share_of_the_volume_out_of_view():
+    """Against a Monte Carlo reference (20,000 uniform points per box, projected with the calib's
+    matrices): cars ahead, at the image edges, beside and behind the camera."""
     rng = np.random.default_rng(1)
-    lo = rng.uniform(-300, 1300, (200, 2)) * [1, 0.4]
-    raw = np.concatenate([lo, lo + rng.uniform(1, 400, (200, 2))], 1)
-    clipped, share = truncation(raw, 1242, 375)
-    image = shapely_box(0, 0, 1241, 374)
-    for b, s in zip(raw, share):
-        poly = shapely_box(*b)
-        np.testing.assert_allclose(s, 1 - poly.intersection(image).area / poly.area, atol=1e-9)
+    k = 60
+    r, angle = rng.uniform(3, 40, k), rng.choice([-1, 1], k) * rng.normal(0.71, 0.08, k)  # about the image's edges
+    angle[:20] = rng.uniform(-np.pi, np.pi, 20)  # anywhere
+    boxes = np.c_[r * np.cos(angle), r * np.sin(angle), rng.uniform(-1.2, -0.6, k), rng.uniform(3.5, 5, k),
+                  rng.uniform(1.6, 2.0, k), rng.uniform(1.3, 1.8, k), rng.uniform(-np.pi, np.pi, k)]
+    share = truncation(boxes, CALIB, 1242, 375)
+    p2, velo = CALIB.P2, CALIB.velo_to_rect()
+    for box, got in zip(boxes, share):
+        u = rng.uniform(-0.5, 0.5, (20000, 3)) * box[3:6]
+        c, s = np.cos(box[6]), np.sin(box[6])
+        pts = np.c_[u[:, 0] * c - u[:, 1] * s + box[0], u[:, 0] * s + u[:, 1] * c + box[1], u[:, 2] + box[2]]
+        uvw = (np.c_[pts, np.ones(len(pts))] @ velo.T)[:, :3] @ p2[:, :3].T + p2[:, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = uvw[:, :2] / uvw[:, 2:]
+        seen = (uvw[:, 2] > 0.1) & (uv[:, 0] >= 0) & (uv[:, 0] <= 1241) & (uv[:, 1] >= 0) & (uv[:, 1] <= 374)
+        assert abs(got - (1 - seen.mean())) < 0.07
+    assert (share == 0).sum() > 5 and (share == 1).sum() > 5 and ((share > 0.1) & (share < 0.9)).sum() > 5
 
 
 def test_clipped_boxes_match_harness_projection():
@@ -77,7 +101,7 @@ def test_clipped_boxes_match_harness_projection():
     boxes = np.c_[rng.uniform(3, 60, 30), rng.uniform(-15, 15, 30), rng.uniform(-1.5, 0, 30),
                   rng.uniform(3, 6, 30), rng.uniform(1.5, 2.2, 30), rng.uniform(1.3, 2.0, 30), rng.uniform(-3, 3, 30)]
     raw, front = projected_boxes(boxes, CALIB)
-    clipped, _ = truncation(raw, 1242, 375)
+    clipped = clip_boxes(raw, 1242, 375)
     np.testing.assert_allclose(clipped[front], project_boxes_2d(boxes, CALIB)[front], atol=1e-6)
 
 
