@@ -23,6 +23,9 @@ CONTRACT_VERSION = "1"
 REQUIRED_OUTPUTS = ("boxes", "scores")
 STAGE_OUTPUTS = ("rois", "roi_scores")
 STANDARD_DOMAINS = ("", "ai.onnx", "ai.onnx.ml")
+MIN_OPSET = 18
+REQUIRED_METADATA = ("sotif.contract", "sotif.architecture", "sotif.classes", "sotif.point_cloud_range",
+                     "sotif.data_hash", "sotif.config_hash")
 
 
 class ContractError(ValueError):
@@ -78,6 +81,48 @@ def sha256_file(path) -> str:
     return h.hexdigest()
 
 
+def _subgraphs(node):
+    for attr in node.attribute:
+        if attr.type == onnx.AttributeProto.GRAPH:
+            yield attr.g
+        elif attr.type == onnx.AttributeProto.GRAPHS:
+            yield from attr.graphs
+
+
+def _all_nodes(nodes):
+    """Every node, with those of Loop / If / Scan bodies at any depth."""
+    for node in nodes:
+        yield node
+        for graph in _subgraphs(node):
+            yield from _all_nodes(graph.node)
+
+
+def _all_tensors(model):
+    """Every stored tensor: the initializers of the graph and of every subgraph, and the tensor
+    attributes (Constant values) of every node, in functions too."""
+    def of_graph(graph):
+        yield from graph.initializer
+        yield from (t.values for t in graph.sparse_initializer)
+        yield from of_nodes(graph.node)
+
+    def of_nodes(nodes):
+        for node in nodes:
+            for attr in node.attribute:
+                if attr.type == onnx.AttributeProto.TENSOR:
+                    yield attr.t
+                elif attr.type == onnx.AttributeProto.TENSORS:
+                    yield from attr.tensors
+            for graph in _subgraphs(node):
+                yield from of_graph(graph)
+    yield from of_graph(model.graph)
+    for function in model.functions:
+        yield from of_nodes(function.node)
+
+
+def _type_name(elem: int) -> str:
+    return onnx.helper.tensor_dtype_to_np_dtype(elem).name if elem else "undefined"
+
+
 def _check_io(path, model) -> tuple[dict, dict]:
     f32 = onnx.TensorProto.FLOAT
     inputs = {i.name: i for i in model.graph.input}
@@ -86,7 +131,7 @@ def _check_io(path, model) -> tuple[dict, dict]:
         raise ContractError(path, f"no input named 'points' (inputs: {', '.join(inputs) or 'none'})")
     pts = inputs["points"]
     if _elem(pts) != f32 or len(_dims(pts)) != 2 or _dims(pts)[1] != 4:
-        raise ContractError(path, f"input 'points' must be float32 [N, 4], got {_dims(pts)}")
+        raise ContractError(path, f"input 'points' must be float32 [N, 4], got {_type_name(_elem(pts))} {_dims(pts)}")
     if isinstance(_dims(pts)[0], int):
         raise ContractError(path, "input 'points' must have a dynamic first dimension (any number of points)")
     extra = set(inputs) - {"points", "image", "lidar2img"}
@@ -94,8 +139,16 @@ def _check_io(path, model) -> tuple[dict, dict]:
         raise ContractError(path, f"unexpected input(s) {sorted(extra)}; the contract allows points, image, lidar2img")
     if ("image" in inputs) != ("lidar2img" in inputs):
         raise ContractError(path, "camera models need both 'image' [1, 3, H, W] and 'lidar2img' [4, 4]")
-    if "image" in inputs and (len(_dims(inputs["image"])) != 4 or _dims(inputs["lidar2img"]) != [4, 4]):
-        raise ContractError(path, "'image' must be [1, 3, H, W] and 'lidar2img' [4, 4]")
+    if "image" in inputs:
+        image, l2i = inputs["image"], inputs["lidar2img"]
+        d = _dims(image)
+        if (_elem(image) != f32 or len(d) != 4 or (isinstance(d[0], int) and d[0] != 1)
+                or (isinstance(d[1], int) and d[1] != 3)):
+            raise ContractError(path, f"input 'image' must be float32 [1, 3, H, W], got {_type_name(_elem(image))} "
+                                      f"{_dims(image)}")
+        if _elem(l2i) != f32 or _dims(l2i) != [4, 4]:
+            raise ContractError(path, f"input 'lidar2img' must be float32 [4, 4], got {_type_name(_elem(l2i))} "
+                                      f"{_dims(l2i)}")
     for name in REQUIRED_OUTPUTS:
         if name not in outputs:
             raise ContractError(path, f"no output named '{name}' (outputs: {', '.join(outputs) or 'none'})")
@@ -104,7 +157,8 @@ def _check_io(path, model) -> tuple[dict, dict]:
         if name in outputs:
             d = _dims(outputs[name])
             if _elem(outputs[name]) != f32 or len(d) != rank or (rank == 2 and d[1] != 7):
-                raise ContractError(path, f"output '{name}' must be float32 {'[M, 7]' if rank == 2 else '[M]'}, got {d}")
+                raise ContractError(path, f"output '{name}' must be float32 {'[M, 7]' if rank == 2 else '[M]'}, "
+                                          f"got {_type_name(_elem(outputs[name]))} {d}")
     if ("rois" in outputs) != ("roi_scores" in outputs):
         raise ContractError(path, "two-stage outputs come in pairs: 'rois' and 'roi_scores'")
     return ({k: _dims(v) for k, v in inputs.items()}, {k: _dims(v) for k, v in outputs.items()})
@@ -119,23 +173,41 @@ def check_contract(path) -> ContractInfo:
         model = onnx.load(str(path), load_external_data=False)
     except Exception as e:  # noqa: BLE001 - onnx raises several kinds of decode errors
         raise ContractError(path, f"not a readable ONNX model ({type(e).__name__}: {e})") from None
-    for init in model.graph.initializer:
-        if init.data_location == onnx.TensorProto.EXTERNAL:
-            raise ContractError(path, f"weight '{init.name}' is stored in an external file; the contract needs one self-contained file")
+    for tensor in _all_tensors(model):
+        if tensor.data_location == onnx.TensorProto.EXTERNAL:
+            raise ContractError(path, f"tensor '{tensor.name}' is stored in an external file; the contract needs "
+                                      "one self-contained file")
+    opsets = {o.domain: o.version for o in model.opset_import}
+    opset = opsets.get("", opsets.get("ai.onnx", 0))
+    if opset < MIN_OPSET:
+        raise ContractError(path, f"opset {opset} of the default domain; the contract needs opset >= {MIN_OPSET}")
     try:
-        onnx.checker.check_model(model)
-    except onnx.checker.ValidationError as e:
+        onnx.checker.check_model(model, full_check=True)
+    except (onnx.checker.ValidationError, onnx.shape_inference.InferenceError) as e:
         raise ContractError(path, f"onnx.checker rejects the model: {str(e).splitlines()[0]}") from None
     inputs, outputs = _check_io(path, model)
-    local = {f.domain for f in model.functions}
+    local = {(f.domain, f.name) for f in model.functions}
+    bodies = [n for f in model.functions for n in _all_nodes(f.node)]
+    for node in [*_all_nodes(model.graph.node), *bodies]:
+        if node.domain not in STANDARD_DOMAINS and (node.domain, node.op_type) not in local:
+            raise ContractError(path, f"node '{node.name}' uses the non-standard op {node.domain}::{node.op_type}")
     hist: dict[str, int] = {}
     for node in model.graph.node:
-        if node.domain not in STANDARD_DOMAINS and node.domain not in local:
-            raise ContractError(path, f"node '{node.name}' uses the non-standard op {node.domain}::{node.op_type}")
         hist[node.op_type] = hist.get(node.op_type, 0) + 1
     meta = {p.key: p.value for p in model.metadata_props}
     if meta.get("sotif.contract") != CONTRACT_VERSION:
         raise ContractError(path, f"metadata 'sotif.contract' must be \"{CONTRACT_VERSION}\", got {meta.get('sotif.contract')!r}")
+    missing = [k for k in REQUIRED_METADATA if k not in meta]
+    if missing:
+        raise ContractError(path, f"metadata_props lack {', '.join(missing)} (the contract needs {', '.join(REQUIRED_METADATA)})")
+    try:
+        pc_range = [float(v) for v in json.loads(meta["sotif.point_cloud_range"])]
+        ok = len(pc_range) == 6 and all(lo < hi for lo, hi in zip(pc_range[:3], pc_range[3:]))
+    except (ValueError, TypeError):
+        ok = False
+    if not ok:
+        raise ContractError(path, "metadata 'sotif.point_cloud_range' must be a JSON list [x_min, y_min, z_min, "
+                                  f"x_max, y_max, z_max], got {meta['sotif.point_cloud_range']!r}")
     return ContractInfo(path, inputs, outputs, meta, sha256_file(path), dict(sorted(hist.items())))
 
 
@@ -151,7 +223,10 @@ class OnnxDetector:
             if threads:
                 opts.intra_op_num_threads = threads
             opts.log_severity_level = 3
-            self._sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            try:
+                self._sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+            except Exception as e:  # noqa: BLE001 - onnxruntime's load errors share no base class but Exception
+                raise ContractError(path, f"onnxruntime cannot load it: {str(e).splitlines()[0]}") from None
             self.output_names = [o.name for o in self._sess.get_outputs()]
             self._run = lambda feeds: dict(zip(self.output_names, self._sess.run(None, feeds)))
         elif runtime == "openvino":
@@ -159,7 +234,10 @@ class OnnxDetector:
                 import openvino as ov
             except ImportError:
                 raise ValueError("--runtime openvino needs the optional extra: pip install 'sotif-bench[openvino]'") from None
-            compiled = ov.Core().compile_model(str(path), "CPU")
+            try:
+                compiled = ov.Core().compile_model(str(path), "CPU")
+            except Exception as e:  # noqa: BLE001 - as for onnxruntime
+                raise ContractError(path, f"OpenVINO cannot load it: {str(e).splitlines()[0]}") from None
             # an output tensor can carry several names in OpenVINO: keep the graph's output order
             self.output_names = list(self.info.outputs)
 
@@ -178,11 +256,20 @@ class OnnxDetector:
                 raise ValueError(f"{self.info.path}: this model needs a camera image and lidar2img")
             feeds["image"] = np.ascontiguousarray(image, dtype=np.float32)
             feeds["lidar2img"] = np.ascontiguousarray(lidar2img, dtype=np.float32)
-        out = self._run(feeds)
+        try:
+            out = self._run(feeds)
+        except Exception as e:  # noqa: BLE001 - the runtime's errors on this file's graph are the file's
+            raise ValueError(f"{self.info.path}: {self.runtime} failed on an input of {len(points)} points: "
+                             f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
         for name in out:
             out[name] = np.asarray(out[name], dtype=np.float32)
             if not np.isfinite(out[name]).all():
                 raise ValueError(f"{self.info.path}: output '{name}' contains NaN or inf")
+        for boxes, scores in (("boxes", "scores"), ("rois", "roi_scores")):
+            if boxes in out and (out[boxes].ndim != 2 or out[boxes].shape[1] != 7 or out[scores].ndim != 1
+                                 or len(out[scores]) != len(out[boxes])):
+                raise ValueError(f"{self.info.path}: outputs '{boxes}' {list(out[boxes].shape)} and '{scores}' "
+                                 f"{list(out[scores].shape)} are not [M, 7] and [M] with the same M")
         return out
 
 

@@ -64,7 +64,9 @@ def centroid_detector(path, metadata=None, drop_output=None, custom_op=False, tw
                               outputs, inits)
     opsets = [helper.make_opsetid("", 18)] + ([helper.make_opsetid("my.ops", 1)] if custom_op else [])
     model = helper.make_model(graph, opset_imports=opsets)
-    meta = {"sotif.contract": "1", "sotif.architecture": "centroid", "sotif.classes": "Car"} if metadata is None else metadata
+    meta = {"sotif.contract": "1", "sotif.architecture": "centroid", "sotif.classes": "Car",
+            "sotif.point_cloud_range": "[0, -40, -3, 70.4, 40, 1]", "sotif.data_hash": "", "sotif.config_hash": ""} \
+        if metadata is None else metadata
     for k, v in meta.items():
         model.metadata_props.add(key=k, value=v)
     onnx.save(model, str(path))

@@ -23,6 +23,74 @@ def test_contract_refuses_broken_files(make_onnx, tmp_path, kwargs, message):
         check_contract(path)
 
 
+def _opset_17(model):
+    model.opset_import[0].version = 17
+
+
+def _custom_op_in_a_branch(model):
+    from onnx import TensorProto, helper
+    branch = lambda op, domain: helper.make_graph(  # noqa: E731
+        [helper.make_node(op, ["points"], ["y"], domain=domain)], "branch", [],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, ["N", 4])])
+    model.graph.node.append(helper.make_node("If", ["cond"], ["unused"], then_branch=branch("Secret", "my.ops"),
+                                             else_branch=branch("Identity", "")))
+    model.graph.initializer.append(helper.make_tensor("cond", TensorProto.BOOL, [], [True]))
+    model.opset_import.append(helper.make_opsetid("my.ops", 1))
+
+
+def _external_constant(model):
+    from onnx import TensorProto, helper
+    value = helper.make_tensor("c", TensorProto.FLOAT, [1], [1.0])
+    value.ClearField("float_data")
+    value.data_location = TensorProto.EXTERNAL
+    value.external_data.add(key="location", value="c.bin")
+    model.graph.node.append(helper.make_node("Constant", [], ["unused"], value=value))
+
+
+def _without(key):
+    def drop(model):
+        keep = [p for p in model.metadata_props if p.key != key]
+        del model.metadata_props[:]
+        model.metadata_props.extend(keep)
+    return drop
+
+
+def _metadata(key, value):
+    def set_(model):
+        next(p for p in model.metadata_props if p.key == key).value = value
+    return set_
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (_opset_17, "opset 17 of the default domain; the contract needs opset >= 18"),
+    (_custom_op_in_a_branch, "non-standard op my.ops::Secret"),
+    (_external_constant, "tensor 'c' is stored in an external file"),
+    (_without("sotif.point_cloud_range"), "metadata_props lack sotif.point_cloud_range"),
+    (_without("sotif.data_hash"), "metadata_props lack sotif.data_hash"),
+    (_metadata("sotif.point_cloud_range", "banana"), "'sotif.point_cloud_range' must be a JSON list"),
+])
+def test_contract_refuses_rules_broken_deeper_in_the_file(make_onnx, tmp_path, mutate, message):
+    """Rules a file can break beyond its top-level nodes and first metadata key."""
+    import onnx
+    path = make_onnx(tmp_path / "deep.onnx")
+    model = onnx.load(str(path))
+    mutate(model)
+    onnx.save(model, str(path))
+    with pytest.raises(ContractError, match=rf"deep\.onnx: .*{message}"):
+        check_contract(path)
+
+
+def test_detector_refuses_boxes_and_scores_of_different_counts(make_onnx, tmp_path):
+    import onnx
+    path = make_onnx(tmp_path / "m.onnx")
+    model = onnx.load(str(path))
+    score = next(t for t in model.graph.initializer if t.name == "score_c")
+    score.CopyFrom(onnx.helper.make_tensor("score_c", onnx.TensorProto.FLOAT, [2], [0.9, 0.8]))
+    onnx.save(model, str(path))
+    with pytest.raises(ValueError, match=r"m\.onnx: outputs 'boxes' \[1, 7\] and 'scores' \[2\]"):
+        OnnxDetector(path)(np.ones((10, 4), np.float32))
+
+
 def test_contract_refuses_garbage_and_missing(tmp_path):
     (tmp_path / "junk.onnx").write_bytes(b"\x00\x01 not a model")
     with pytest.raises(ContractError, match=r"junk\.onnx"):
