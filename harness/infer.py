@@ -123,6 +123,13 @@ def _type_name(elem: int) -> str:
     return onnx.helper.tensor_dtype_to_np_dtype(elem).name if elem else "undefined"
 
 
+def runtime_reason(exc: Exception, limit: int = 400) -> str:
+    """The informative part of a runtime's message: without OpenVINO's "Exception from file:line"
+    frames, on one line, at most ``limit`` characters."""
+    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip() and not ln.startswith("Exception from ")]
+    return " ".join(lines)[:limit] or type(exc).__name__
+
+
 def _check_io(path, model) -> tuple[dict, dict]:
     f32 = onnx.TensorProto.FLOAT
     inputs = {i.name: i for i in model.graph.input}
@@ -226,7 +233,7 @@ class OnnxDetector:
             try:
                 self._sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
             except Exception as e:  # noqa: BLE001 - onnxruntime's load errors share no base class but Exception
-                raise ContractError(path, f"onnxruntime cannot load it: {str(e).splitlines()[0]}") from None
+                raise ContractError(path, f"onnxruntime cannot load it: {runtime_reason(e)}") from e
             self.output_names = [o.name for o in self._sess.get_outputs()]
             self._run = lambda feeds: dict(zip(self.output_names, self._sess.run(None, feeds)))
         elif runtime == "openvino":
@@ -237,7 +244,7 @@ class OnnxDetector:
             try:
                 compiled = ov.Core().compile_model(str(path), "CPU")
             except Exception as e:  # noqa: BLE001 - as for onnxruntime
-                raise ContractError(path, f"OpenVINO cannot load it: {str(e).splitlines()[0]}") from None
+                raise ContractError(path, f"OpenVINO cannot load it: {runtime_reason(e)}") from e
             # an output tensor can carry several names in OpenVINO: keep the graph's output order
             self.output_names = list(self.info.outputs)
 
@@ -260,7 +267,7 @@ class OnnxDetector:
             out = self._run(feeds)
         except Exception as e:  # noqa: BLE001 - the runtime's errors on this file's graph are the file's
             raise ValueError(f"{self.info.path}: {self.runtime} failed on an input of {len(points)} points: "
-                             f"{str(e).splitlines()[0] if str(e) else type(e).__name__}") from None
+                             f"{runtime_reason(e)}") from e
         for name in out:
             out[name] = np.asarray(out[name], dtype=np.float32)
             if not np.isfinite(out[name]).all():

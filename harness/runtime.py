@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.infer import OnnxDetector, _frame_inputs, latency_summary
+from harness.infer import OnnxDetector, _frame_inputs, latency_summary, runtime_reason
 from harness.kitti import read_image_set
 
 
@@ -73,11 +73,10 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
             "peak_memory_mb": peak_memory_mb(onnx_path, data, min(n_frames, 5))}
 
 
-def _reason(exc: Exception, limit: int = 400) -> str:
-    """The informative part of a runtime's message: without OpenVINO's "Exception from file:line"
-    frames, on one line, at most ``limit`` characters."""
-    lines = [ln.strip() for ln in str(exc).splitlines() if ln.strip() and not ln.startswith("Exception from ")]
-    return " ".join(lines)[:limit]
+def _reason(exc: Exception) -> str:
+    """The runtime's own error (not the detector's wrapper of it), as ``Type: message``."""
+    cause = exc.__cause__ or exc
+    return f"{type(cause).__name__}: {runtime_reason(cause)}"
 
 
 def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
@@ -93,14 +92,14 @@ def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
     try:
         ov_det = OnnxDetector(onnx_path, runtime="openvino")
     except Exception as exc:  # noqa: BLE001 - any compile failure is the finding
-        return {"error": f"compile: {type(exc).__name__}: {_reason(exc)}"}
+        return {"error": f"compile: {_reason(exc)}"}
     t_ov, t_ort, agree = [], [], []
     for fid in _frames(data, n_frames):
         points, _, image, l2i, _ = _frame_inputs(ort_det, data, fid)
         try:  # the warm-up call also compiles for this input shape
             out_v, ms = _timed(lambda: ov_det(points, image, l2i))
         except Exception as exc:  # noqa: BLE001
-            return {"error": f"frame {fid}: {type(exc).__name__}: {_reason(exc)}"}
+            return {"error": f"frame {fid}: {_reason(exc)}"}
         t_ov.append(ms)
         out_o, ms = _timed(lambda: ort_det(points, image, l2i))
         t_ort.append(ms)

@@ -16,8 +16,9 @@ A frame counts as a detection when a predicted box with score >= the model's ope
 has BEV IoU >= ``IOU_BEV_MIN`` with the slow car's ground-truth box (row ``slow_car_label_index``
 of the frame's label_2 file). The operating threshold is the F1-optimal score threshold at BEV
 IoU 0.5 over all Car boxes of the "val" split (``FALLBACK_THRESHOLD`` when val is empty or has no
-prediction files). Distances are from the LiDAR to the slow car's rear face (BEV range of the box
-centre minus half its length), metres. Pure functions first, then the driver ``sotif_view``.
+prediction files). Distances are gaps from the ego's front bumper to the slow car's rear face
+(BEV range of the box centre minus half its length, minus ``LIDAR_TO_FRONT_M``: the simulated
+LiDAR sits above the centre of the ego), metres. Pure functions first, then the driver ``sotif_view``.
 """
 from __future__ import annotations
 
@@ -29,10 +30,12 @@ import pandas as pd
 
 from harness.boxes import iou_bev
 from harness.kitti import KittiError, Labels, frame_path, read_calib, read_frames_meta, read_image_set, read_labels
+from simulator.scenario import EGO_DIMS
 
 T_REACT_S = 1.0  # s, driver/system reaction time before braking starts
 DECEL_MPS2 = 4.0  # m/s^2, comfortable-to-firm braking deceleration
 MARGIN_M = 2.0  # m, gap left after braking
+LIDAR_TO_FRONT_M = EGO_DIMS[0] / 2  # m, the ego's front bumper ahead of its roof LiDAR (above its centre)
 IOU_BEV_MIN = 0.5
 FALLBACK_THRESHOLD = 0.3
 META_COLUMNS = ("frame_id", "weather", "scenario_time_s", "lane_change_time_s", "slow_car_label_index",
@@ -102,9 +105,10 @@ def slow_car_detected(pred_boxes: np.ndarray, pred_scores: np.ndarray, slow_box:
     return bool((iou_bev(np.asarray(pred_boxes)[keep], np.asarray(slow_box).reshape(1, 7))[:, 0] >= iou_min).any())
 
 
-def rear_distance(box: np.ndarray) -> float:
-    """Metres from the LiDAR to the rear face of a box ahead: BEV range of its centre minus l / 2."""
-    return float(math.hypot(box[0], box[1]) - box[3] / 2.0)
+def rear_distance(box: np.ndarray, lidar_to_front: float = LIDAR_TO_FRONT_M) -> float:
+    """Metres from the ego's front bumper to the rear face of a box ahead: BEV range of its centre
+    minus l / 2, minus the bumper's distance ahead of the LiDAR."""
+    return float(math.hypot(box[0], box[1]) - box[3] / 2.0 - lidar_to_front)
 
 
 # ----------------------------------------------------------------------------- loaders

@@ -63,8 +63,10 @@ def test_detected_never_and_below_threshold(tmp_path):
     clear = view["ClearNoon"]
     assert clear["detected"] and clear["frame_id"] == "000003"
     assert clear["time_after_lane_change_s"] == pytest.approx(0.5)
-    assert clear["distance_m"] == pytest.approx(60.0 - 12.0 - 4.75 / 2, abs=1e-3)
-    d0 = 60.0 - 8.0 - 4.75 / 2  # at the first frame after the lane change (t = 1.0 s)
+    front = 4.7 / 2  # the simulated ego's bumper ahead of its LiDAR: gaps are bumper to bumper
+    assert sotif.LIDAR_TO_FRONT_M == front
+    assert clear["distance_m"] == pytest.approx(60.0 - 12.0 - 4.75 / 2 - front, abs=1e-3)
+    d0 = 60.0 - 8.0 - 4.75 / 2 - front  # at the first frame after the lane change (t = 1.0 s)
     assert clear["distance_at_lane_change_m"] == pytest.approx(d0, abs=1e-3)
     assert clear["distance_if_no_braking_m"] == pytest.approx(d0 - dv * 0.5, abs=1e-3)
     assert clear["stopping_distance_m"] == pytest.approx(dv + dv * dv / 8 + 2) and clear["pass"] is True
@@ -92,7 +94,7 @@ def test_verdict_ignores_the_simulated_ego_braking(tmp_path):
     dv0 = 25.0 - 60 / 3.6
     assert row["closing_speed_mps"] == pytest.approx(dv0)
     assert row["stopping_distance_m"] == pytest.approx(sotif.stopping_distance(dv0))
-    d0 = 60.0 - 8.0 - 4.75 / 2
+    d0 = 60.0 - 8.0 - 4.75 / 2 - 4.7 / 2
     assert row["distance_if_no_braking_m"] == pytest.approx(d0 - dv0 * 1.0, abs=1e-3)
     assert sotif.gap_without_braking(10.0, 4.0, 2.0) == 2.0 and sotif.gap_without_braking(10.0, -1.0, 2.0) == 10.0
 
