@@ -8,11 +8,14 @@
 - ``headline.<3d|bev>.<0.7|0.5>``: AP40 over all distances with the 2D-height, occlusion and
   truncation filters off (the SOTIF targets are far and small).
 - ``distance.<3d|bev>.<0.7|0.5>.<0-30|30-50|50-80>``: AP40 by ground-truth distance, filters off.
+- ``n_gt.<all|0-30|30-50|50-80>``: the Car boxes the headline and each distance bin count; an AP40
+  over n boxes is at most (n - 1) / 40 (KITTI samples its recall positions among the matches).
 - ``recall.<rcnn|roi>.<0.3|0.5|0.7>``: share of Car boxes whose best rotated 3D IoU with the
   given boxes exceeds the threshold (micro-averaged over frames); ``roi`` only when the
   prediction folder has ``rois/``.
 - ``groups`` (with ``--group-by``): ``{"column": C, "rows": {value: {n_frames, n_car, headline,
-  headline_ci95 {3d, bev: [lo, hi]}, kitti_moderate {3d, bev} (AP40 @0.7), distance, recall}}}``.
+  headline_ci95 {3d, bev: [lo, hi]}, kitti_moderate {3d, bev} (AP40 @0.7), n_gt_kitti_moderate,
+  distance, n_gt, recall}}}``.
 - ``groups_by``: the same for every requested column (``run`` asks for weather, time of day and
   precipitation class).
 - ``pr_curve``: interpolated precision and recall at the 41 sample points of the headline 3D AP @0.7.
@@ -31,8 +34,9 @@ from harness.kitti import KittiError, Labels, atomic_write_text, read_frames_met
 
 SCHEMA = "sotif-bench/results/1"
 # Bumped whenever a fix changes any number of the same predictions, so that a run directory
-# evaluated before it evaluates again (2: BEV/3D overlaps turn boxes by -rotation_y, as the reference)
-EVALUATOR_VERSION = 2
+# evaluated before it evaluates again (2: BEV/3D overlaps turn boxes by -rotation_y, as the reference;
+# 3: n_gt, the boxes each headline / distance / moderate AP counts)
+EVALUATOR_VERSION = 3
 ALL_DISTANCES = Filter("all")
 DISTANCE_BINS = (Filter("0-30", min_distance=0, max_distance=30), Filter("30-50", min_distance=30, max_distance=50),
                  Filter("50-80", min_distance=50, max_distance=80))
@@ -82,14 +86,21 @@ def recall_at_iou(gt: list[Labels], boxes: list[Labels], thresholds=RECALL_THRES
 
 
 def _summary(es, frames=None) -> dict:
-    """Headline AP (all distances, filters off) and distance bins for 3D and BEV at 0.7 and 0.5."""
+    """Headline AP (all distances, filters off) and distance bins for 3D and BEV at 0.7 and 0.5,
+    and the number of Car boxes each counts (``n_gt``: AP40 over n boxes is at most (n - 1) / 40)."""
     head, dist = {"3d": {}, "bev": {}}, {"3d": {}, "bev": {}}
+    n_gt = {}
     for metric in ("3d", "bev"):
         for thr in (0.7, 0.5):
-            head[metric][f"{thr}"] = ap_r40(precision_recall(es, metric, ALL_DISTANCES, thr, frames)["precision"])
-            dist[metric][f"{thr}"] = {f.name: ap_r40(precision_recall(es, metric, f, thr, frames)["precision"])
-                                      for f in DISTANCE_BINS}
-    return {"headline": head, "distance": dist}
+            pr = precision_recall(es, metric, ALL_DISTANCES, thr, frames)
+            head[metric][f"{thr}"] = ap_r40(pr["precision"])
+            n_gt["all"] = pr["num_gt"]
+            dist[metric][f"{thr}"] = {}
+            for f in DISTANCE_BINS:
+                pr = precision_recall(es, metric, f, thr, frames)
+                dist[metric][f"{thr}"][f.name] = ap_r40(pr["precision"])
+                n_gt[f.name] = pr["num_gt"]
+    return {"headline": head, "distance": dist, "n_gt": n_gt}
 
 
 def bootstrap_ci(es, frames, metric: str, n: int = 200, seed: int = 0, thr: float = 0.7) -> list[float]:
@@ -132,6 +143,7 @@ def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, meta_path, column:
             **_summary(es, frames),
             "headline_ci95": {k: bootstrap_ci(es, frames, k, n_boot, seed) for k in ("3d", "bev")},
             "kitti_moderate": {k: m[k]["0.7"]["R40"]["moderate"] for k in ("3d", "bev")},
+            "n_gt_kitti_moderate": precision_recall(es, "3d", DIFFICULTIES[1], 0.7, frames)["num_gt"],
             "recall": _recalls(gt, stage_boxes, frames),
         }
     return {"column": column, "rows": rows}

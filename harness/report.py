@@ -124,7 +124,9 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                  ("By precipitation class (AP40 3D @0.7)", _group_matrix(t["precipitation_class"], "precipitation_class"), 1)],
                 []),
         Section("detail", "Per weather and model: all numbers",
-                "Headline 3D and BEV AP, 95% interval, KITTI moderate AP40, AP per distance bin and RCNN recall.",
+                "Headline 3D and BEV AP, 95% interval, KITTI moderate AP40, AP per distance bin and RCNN recall. "
+                "n_gt columns: the Car boxes behind an AP; KITTI's AP40 over n boxes is at most (n - 1) / 40 "
+                "(it samples its recall positions among the matches), so 2 boxes cap it at 2.5.",
                 [("", t["weather_detail"], 1)], ["ap_distance", "pr_curves"], details=True),
         Section("runtime", "Runtime",
                 "onnxruntime latency per frame (p50/p90, timed one model at a time with every core), throughput, "
@@ -152,7 +154,8 @@ def _overview(run: tables.Run) -> dict:
 def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
     if df.empty:
         return Markup("<p class='empty'>(not available in this run)</p>")
-    html = df.to_html(index=False, na_rep="–", border=0, classes="tbl", float_format=lambda v, d=decimals: tables.fmt_float(v, d))
+    cells = df.astype(object).map(lambda v: tables.display_cell(v, decimals))  # as in report.md
+    html = cells.to_html(index=False, border=0, classes="tbl")
     return Markup(html.replace("<td>FAIL", '<td class="fail">FAIL').replace("<td>pass", '<td class="pass">pass'))
 
 

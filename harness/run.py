@@ -396,13 +396,19 @@ def _run_lock(run_dir: Path):
 
 
 def _wall_span(infos: dict[str, dict]) -> float | None:
-    """Seconds from the start of the first stage to the end of the last one (stages of parallel jobs
-    overlap, so this is less than their sum); None when a record predates the ``finished`` stamp."""
-    spans = [(i["finished"] - i["seconds"], i["finished"]) for i in infos.values()
-             if isinstance(i.get("finished"), (int, float)) and isinstance(i.get("seconds"), (int, float))]
+    """Seconds during which at least one stage ran: the length of the union of the stages' intervals.
+    Stages of parallel jobs overlap, so this is less than their sum; a run stopped and resumed
+    later does not count the pause. None when a record predates the ``finished`` stamp."""
+    spans = sorted((i["finished"] - i["seconds"], i["finished"]) for i in infos.values()
+                   if isinstance(i.get("finished"), (int, float)) and isinstance(i.get("seconds"), (int, float)))
     if not spans or len(spans) < len(infos):
         return None
-    return round(max(e for _, e in spans) - min(b for b, _ in spans), 3)
+    total, (start, end) = 0.0, spans[0]
+    for b, e in spans[1:]:
+        if b > end:
+            total, start = total + end - start, b
+        end = max(end, e)
+    return round(total + end - start, 3)
 
 
 def data_stats(run_dir: Path) -> Path:

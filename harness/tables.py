@@ -127,6 +127,9 @@ def _group_record(row: dict) -> dict:
             "ap3d_0.5": row["headline"]["3d"]["0.5"],
             "kitti_mod_3d": row["kitti_moderate"]["3d"], "kitti_mod_bev": row["kitti_moderate"]["bev"],
             **{f"ap3d_{b}m": row["distance"]["3d"]["0.7"][b] for b in DISTANCE_BINS},
+            # the boxes behind each AP (an AP40 over n boxes is at most (n - 1) / 40; older results lack them)
+            "n_gt_kitti_mod": row.get("n_gt_kitti_moderate", np.nan),
+            **{f"n_gt_{b}m": row.get("n_gt", {}).get(b, np.nan) for b in DISTANCE_BINS},
             "recall@0.5": 100.0 * rec.get("0.5", np.nan), "recall@0.7": 100.0 * rec.get("0.7", np.nan)}
 
 
@@ -330,14 +333,19 @@ def fmt_float(v: float, digits: int) -> str:
     return f"{v:.1e}" if 0 < abs(v) < 0.5 * 10.0 ** -digits else f"{v:.{digits}f}"
 
 
-def _cell(v, digits: int) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
+def display_cell(v, digits: int) -> str:
+    """A table cell as both reports show it: missing as a dash, booleans as yes / no."""
+    if v is None or (isinstance(v, (float, np.floating)) and math.isnan(v)):
         return "–"
     if isinstance(v, (bool, np.bool_)):
         return "yes" if v else "no"
     if isinstance(v, (float, np.floating)):
         return fmt_float(v, digits)
-    return str(v).replace("|", "\\|")
+    return str(v)
+
+
+def _cell(v, digits: int) -> str:
+    return display_cell(v, digits).replace("|", "\\|")
 
 
 def to_markdown(df: pd.DataFrame, digits: int = 2) -> str:

@@ -24,9 +24,13 @@ def test_perfect_predictions_and_groups(tmp_path, dataset):
     assert res["n_frames"] == 6 and res["n_car"] == 18
     # 18 cars < 41 sample points: KITTI's sampling caps AP at (18 - 1) / 40
     assert res["headline"]["3d"]["0.7"] == pytest.approx(17 / 40 * 100)
+    assert res["n_gt"]["all"] == 18 and sum(res["n_gt"][b] for b in ("0-30", "30-50", "50-80")) <= 18
+    for b in ("0-30", "30-50", "50-80"):  # perfect detections: the cap (n - 1) / 40 itself
+        assert res["distance"]["3d"]["0.7"][b] == pytest.approx(max(res["n_gt"][b] - 1, 0) / 40 * 100)
     assert res["recall"]["rcnn"] == {"0.3": 1.0, "0.5": 1.0, "0.7": 1.0}
     rows = res["groups"]["rows"]
     assert set(rows) == {"ClearNoon", "HardRainNight"} and rows["ClearNoon"]["n_frames"] == 3
+    assert 0 <= rows["ClearNoon"]["n_gt_kitti_moderate"] <= rows["ClearNoon"]["n_gt"]["all"] == 9
     lo, hi = rows["ClearNoon"]["headline_ci95"]["3d"]
     assert lo <= rows["ClearNoon"]["headline"]["3d"]["0.7"] + 1e-9 and hi >= lo
 

@@ -98,6 +98,9 @@ def test_render_writes_a_self_contained_report(rendered):
     assert pos == sorted(pos)
     assert 'id="sotif"' in html and "Recall of two-stage models" in html
     assert re.search(r'<td class="(pass|fail)">(pass|FAIL) ', html)
+    # cells read as in report.md: booleans as yes / no, missing values as a dash
+    cells = re.findall(r"<td[^>]*>([^<]*)</td>", html)
+    assert not {"None", "nan", "True", "False"} & set(cells) and {"yes", "no"} <= set(cells)
 
 
 def test_report_md_links_written_figures_and_tables(rendered):

@@ -7,6 +7,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from dataclasses import replace
@@ -87,6 +88,15 @@ def test_wall_span_of_overlapping_stages():
              "c": {"seconds": 5.0, "finished": 104.0}}
     assert _wall_span(infos) == 125.0 - 95.0  # b starts first, ends last; a and c overlap it
     assert _wall_span({**infos, "old": {"seconds": 3.0}}) is None  # a record without the stamp
+    resumed = {**infos, "d": {"seconds": 20.0, "finished": 1020.0}, "e": {"seconds": 5.0, "finished": 1010.0}}
+    assert _wall_span(resumed) == 30.0 + 20.0  # the pause between the sessions does not count
+    rng = np.random.default_rng(0)  # against a 1 ms grid
+    starts, lengths = rng.uniform(0, 50, 12).round(3), rng.uniform(0.5, 8, 12).round(3)
+    grid = np.zeros(60000, bool)
+    for b, n in zip(starts, lengths):
+        grid[int(round(b * 1000)):int(round((b + n) * 1000))] = True
+    infos = {str(k): {"seconds": float(n), "finished": float(b + n)} for k, (b, n) in enumerate(zip(starts, lengths))}
+    assert _wall_span(infos) == pytest.approx(grid.sum() / 1000, abs=0.01)
 
 
 def test_a_second_run_into_the_same_folder_is_refused(tmp_path):
