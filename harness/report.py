@@ -112,7 +112,8 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
         Section("sotif", "SOTIF view: the slow car after the cut-out",
                 f"First detection of the slow car in the ego lane after the fast car's lane change (BEV IoU >= "
                 f"{c['iou_bev_min']}, score >= the model's F1-optimal threshold on the val split). Each cell: verdict, "
-                "the distance to its rear face left at that moment if the ego had kept its closing speed dv from the "
+                "the gap from the ego's front bumper to its rear face left at that moment if the ego had kept its "
+                "closing speed dv from the "
                 "lane change (the simulated ego brakes on ground truth), vs the stopping distance "
                 f"dv*{c['t_react_s']:g} s + dv^2/(2*{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m, "
                 "and the time after the lane change.", [("", t["sotif_matrix"], 1)], []),
