@@ -70,6 +70,9 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
     p50_t, p50_o = float(np.median(t_torch)), float(np.median(t_ort))
     return {"onnxruntime": latency_summary(t_ort), "torch_eager_ms_p50": p50_t, "ort_ms_p50_same_frames": p50_o,
             "ort_speedup": p50_t / p50_o, "agreement": _agreement(agree),
+            # per-frame figures, so that every summary above can be recomputed from the run's files
+            "frames_ms": {"frame_ids": _frames(data, n_frames), "onnxruntime": t_ort,
+                          "torch_eager": t_torch},
             "peak_memory_mb": peak_memory_mb(onnx_path, data, min(n_frames, 5))}
 
 
@@ -108,7 +111,7 @@ def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
         return {"error": "no frames"}
     return {"latency_ms_p50": float(np.median(t_ov)), "latency_ms_p90": float(np.percentile(t_ov, 90)),
             "ort_ms_p50_same_frames": float(np.median(t_ort)), "agreement": _agreement(agree),
-            "error": None}
+            "frames_ms": {"openvino": t_ov, "onnxruntime": t_ort}, "error": None}
 
 
 def peak_memory_mb(onnx_path: Path, data: Path, n_frames: int = 5) -> float | None:

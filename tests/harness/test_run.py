@@ -53,6 +53,9 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
         assert agreement["frames"] == TINY.runtime_frames and 0.0 <= agreement["same_boxes"] <= 1.0
         assert "openvino" in rt  # second runtime, or why not
         assert rt["onnxruntime"]["n_timed"] == TINY.runtime_frames  # timed alone, not during prediction
+        frames_ms = rt["frames_ms"]  # the per-frame figures behind the summary
+        assert len(frames_ms["onnxruntime"]) == len(frames_ms["torch_eager"]) == TINY.runtime_frames
+        assert rt["onnxruntime"]["latency_ms_p50"] == pytest.approx(np.median(frames_ms["onnxruntime"]))
         assert rt["prediction"]["n_frames"] == len((out / "data/sotif/ImageSets/test.txt").read_text().split())
     assert (out / "models/point_rcnn.onnx").is_file() and (out / "results/point_rcnn.json").is_file()
     for rel in ("config.json", "models/pointpillars.onnx", "predictions/pointpillars/predict.json",
