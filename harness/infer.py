@@ -120,7 +120,10 @@ def _all_tensors(model):
 
 
 def _type_name(elem: int) -> str:
-    return onnx.helper.tensor_dtype_to_np_dtype(elem).name if elem else "undefined"
+    try:
+        return onnx.helper.tensor_dtype_to_np_dtype(elem).name
+    except (KeyError, TypeError, ValueError):  # undefined, or no numpy twin (bfloat16, float8 ...)
+        return onnx.TensorProto.DataType.Name(elem).lower() if elem in onnx.TensorProto.DataType.values() else "undefined"
 
 
 def runtime_reason(exc: Exception, limit: int = 400) -> str:
