@@ -127,10 +127,9 @@ def build_parser() -> argparse.ArgumentParser:
     quiet = argparse.ArgumentParser(add_help=False)
     quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS, help="no progress bars")
     sub = p.add_subparsers(dest="command", required=True)
-    add_parser = sub.add_parser
-    sub.add_parser = lambda *args, **kw: add_parser(*args, parents=[quiet], **kw)
 
-    s = sub.add_parser("simulate", help="simulate the SOTIF test set or training scenes as a KITTI data set")
+    s = sub.add_parser("simulate", parents=[quiet],
+                       help="simulate the SOTIF test set or training scenes as a KITTI data set")
     s.add_argument("--preset", choices=["sotif", "train"], required=True)
     s.add_argument("--out", required=True)
     s.add_argument("--frames", type=int)
@@ -140,7 +139,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lidar-model", choices=["physics", "carla"], default="physics")
     s.set_defaults(func=cmd_simulate)
 
-    s = sub.add_parser("train", help="train one detector on a KITTI data set")
+    s = sub.add_parser("train", parents=[quiet], help="train one detector on a KITTI data set")
     s.add_argument("--model", required=True)
     s.add_argument("--data", required=True)
     s.add_argument("--out", required=True)
@@ -153,13 +152,13 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default: one per core, at most the batch size; 1 = one process)")
     s.set_defaults(func=cmd_train)
 
-    s = sub.add_parser("export", help="export a checkpoint to one self-contained ONNX file")
+    s = sub.add_parser("export", parents=[quiet], help="export a checkpoint to one self-contained ONNX file")
     s.add_argument("--model", required=True)
     s.add_argument("--checkpoint", required=True)
     s.add_argument("--out", required=True)
     s.set_defaults(func=cmd_export)
 
-    s = sub.add_parser("predict", help="run an ONNX detector on a data set split, write KITTI results")
+    s = sub.add_parser("predict", parents=[quiet], help="run an ONNX detector on a data set split, write KITTI results")
     s.add_argument("--onnx", required=True)
     s.add_argument("--data", required=True)
     s.add_argument("--split", default="test")
@@ -167,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--runtime", choices=["onnxruntime", "openvino"], default="onnxruntime")
     s.set_defaults(func=cmd_predict)
 
-    s = sub.add_parser("evaluate", help="KITTI AP, distance bins, recall and per-group tables")
+    s = sub.add_parser("evaluate", parents=[quiet], help="KITTI AP, distance bins, recall and per-group tables")
     s.add_argument("--labels")
     s.add_argument("--predictions")
     s.add_argument("--split", help="ImageSets file listing the frames (default: every label file)")
@@ -182,7 +181,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.set_defaults(func=cmd_evaluate)
 
-    s = sub.add_parser("run", help="the whole benchmark: simulate, train, export, predict, evaluate, report")
+    s = sub.add_parser("run", parents=[quiet],
+                       help="the whole benchmark: simulate, train, export, predict, evaluate, report")
     s.add_argument("--profile", choices=["quick", "default", "full"], default="default")
     s.add_argument("--models", help="comma-separated model names (default: all available)")
     s.add_argument("--out", help="run directory (default reports/<profile>)")
@@ -191,7 +191,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="models trained/exported/predicted at once (default: the profile's, 2; 1 = one after the other)")
     s.set_defaults(func=cmd_run)
 
-    s = sub.add_parser("report", help="re-render a run directory's HTML and Markdown report")
+    s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report")
     s.add_argument("run_dir")
     s.set_defaults(func=cmd_report)
     return p
