@@ -6,6 +6,7 @@ Exit status: 0 on success, 2 on bad input (the message names the file and the pr
 from __future__ import annotations
 
 import argparse
+import errno
 import os
 import sys
 import traceback
@@ -201,17 +202,22 @@ def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from harness.malloc import keep_freed_memory
     keep_freed_memory()
-    from harness.infer import ContractError
-    from harness.kitti import KittiError
     try:
         return args.func(args)
-    except (KittiError, ContractError, ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError,
-            FileExistsError, PermissionError) as e:
-        print(f"sotif-bench {args.command}: error: {e}", file=sys.stderr)
-        return BAD_INPUT
     except KeyboardInterrupt:
         print(f"sotif-bench {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
+    except OSError as e:
+        if isinstance(e, (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError, PermissionError)) \
+                or e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):  # bad paths, full or read-only disks
+            print(f"sotif-bench {args.command}: error: {e}", file=sys.stderr)  # the path and the problem
+            return BAD_INPUT
+        traceback.print_exc()
+        print(f"sotif-bench {args.command}: internal error (see the trace above)", file=sys.stderr)
+        return INTERNAL
+    except ValueError as e:  # harness.kitti.KittiError and harness.infer.ContractError are ValueErrors
+        print(f"sotif-bench {args.command}: error: {e}", file=sys.stderr)
+        return BAD_INPUT
     except Exception:  # noqa: BLE001 - the last line of defence: report, exit 1
         traceback.print_exc()
         print(f"sotif-bench {args.command}: internal error (see the trace above)", file=sys.stderr)

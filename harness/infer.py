@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from harness.kitti import (Labels, atomic_write_text, frame_path, read_calib, read_image, read_image_set,
+from harness.kitti import (Labels, atomic_write_text, folder_lock, frame_path, read_calib, read_image, read_image_set,
                            read_points, write_labels)
 
 CONTRACT_VERSION = "1"
@@ -352,13 +352,27 @@ def predict(onnx_path, data, out, split: str = "test", runtime: str = "onnxrunti
     """Run a split through an ONNX detector; write ``out/<id>.txt`` (+ ``rois/``, ``rcnn/``)
     and ``out/predict.json`` (latency p50/p90, frames/s). Resumes an interrupted run of the same
     model, runtime, split and data set (``out/.progress.json``); results of another one are
-    replaced, and result files no earlier ``predict`` recorded are refused, not reused."""
-    from tqdm import tqdm
-
+    replaced, and result files no earlier ``predict`` recorded are refused, not reused. A second
+    ``predict`` into the same folder while this one runs is refused (``out/.lock``)."""
     data, out = Path(data), Path(out)
     det = OnnxDetector(onnx_path, runtime=runtime, threads=threads)
     ids = read_image_set(data / "ImageSets" / f"{split}.txt")
     stamp = {"onnx_sha256": det.info.sha256, "runtime": runtime, "split": split, "data": _inputs_digest(data, ids)}
+    _refuse_unrecorded_results(out)  # before the lock file: a refused folder stays as it was
+    out.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out, "predict"):
+        return _predict_frames(det, data, out, ids, stamp, progress)
+
+
+def _refuse_unrecorded_results(out: Path) -> None:
+    if not (out / ".progress.json").is_file() and _result_files(out):
+        raise ValueError(f"{out}: holds result files ({_result_files(out)[0].name}, ...) that no earlier "
+                         "'sotif-bench predict' into this folder recorded; remove them or choose another --out")
+
+
+def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], stamp: dict, progress: bool) -> dict:
+    from tqdm import tqdm
+
     progress_file = out / ".progress.json"
     if progress_file.is_file():
         try:
@@ -368,10 +382,8 @@ def predict(onnx_path, data, out, split: str = "test", runtime: str = "onnxrunti
         if not same:
             for old in _result_files(out):
                 old.unlink()  # results of another model, runtime, split or data set: start over
-    elif _result_files(out):
-        raise ValueError(f"{out}: holds result files ({_result_files(out)[0].name}, ...) that no earlier "
-                         "'sotif-bench predict' into this folder recorded; remove them or choose another --out")
-    out.mkdir(parents=True, exist_ok=True)
+    else:
+        _refuse_unrecorded_results(out)
     atomic_write_text(progress_file, json.dumps(stamp))
     latencies, n_points = [], []
     for fid in tqdm(ids, desc=f"predict {det.info.architecture}", disable=not progress, unit="frame"):

@@ -7,11 +7,13 @@ every writer is atomic (temp file + rename), so an interrupted write never leave
 """
 from __future__ import annotations
 
+import fcntl
 import io
 import math
 import os
 import re
 import tempfile
+from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from pathlib import Path
 
@@ -81,6 +83,22 @@ def frame_path(root, kind: str, frame_id: str, split_dir: str = "training") -> P
     if kind not in KINDS:
         raise ValueError(f"unknown KITTI folder {kind!r}; expected one of {sorted(KINDS)}")
     return Path(root) / split_dir / kind / f"{frame_id}{KINDS[kind]}"
+
+
+@contextmanager
+def folder_lock(folder: Path, command: str):
+    """Hold ``<folder>/.lock`` while ``command`` writes there: a second command into the same
+    folder stops with an error instead of racing the first for its files."""
+    with open(Path(folder) / ".lock", "a") as f:
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise ValueError(f"{folder}: another sotif-bench {command} is writing to this folder; "
+                             "wait for it to end or pass another --out") from None
+        try:
+            yield
+        finally:
+            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _read_text(path) -> str:

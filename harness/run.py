@@ -7,14 +7,12 @@ per frame, training per epoch, prediction per frame).
 """
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import heapq
 import json
 import os
 import threading
 import time
-from contextlib import contextmanager
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, replace
 from datetime import datetime, timezone
@@ -22,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.kitti import atomic_write_text, remove_temp_files
+from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
 
 RUN_SCHEMA = "sotif-bench/run/1"
 GROUP_COLUMNS = ("weather", "time_of_day", "precipitation_class")
@@ -379,20 +377,9 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
     return run_dir
 
 
-@contextmanager
 def _run_lock(run_dir: Path):
-    """Hold ``RUN/.lock`` for the run: a second run into the same folder stops with an error
-    instead of racing this one for its files."""
-    with open(run_dir / ".lock", "a") as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ValueError(f"{run_dir}: another sotif-bench run is writing to this folder; "
-                             "wait for it to end or pass another --out") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
+    """Hold ``RUN/.lock`` for the run (``harness.kitti.folder_lock``)."""
+    return folder_lock(run_dir, "run")
 
 
 def _wall_span(infos: dict[str, dict]) -> float | None:

@@ -370,6 +370,9 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
         else:
             with _bar(s, model, profile, progress) as bar:
                 state = _fit(s, seed, aug, bar)
+        if state is None and s.path.is_file():  # trained before; validated unless stopped just before it
+            state = torch.load(s.path, map_location=device, weights_only=False)
+            state = None if "val_ap" in state else state
         if state is not None and has_split(data, "val"):
             # held-out frames of the training generator, kept with the checkpoint
             ap = validation_ap(s.net, data)

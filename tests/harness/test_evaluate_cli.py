@@ -1,4 +1,5 @@
 import json
+import os
 import shutil
 
 import numpy as np
@@ -159,3 +160,16 @@ def test_evaluate_equals_an_independent_port_of_the_reference(tmp_path, seed):
     assert all(0 < reference[f"kitti.{m}.0.7.R40.moderate"] < 100 for m in ("bbox", "bev", "3d", "aos"))
     for key, value in reference.items():
         assert ours[key] == pytest.approx(value, abs=1e-9), key
+
+
+def test_cli_exit_status_of_disk_and_internal_errors(monkeypatch, tmp_path, capsys):
+    """A full or read-only disk is bad input (2, naming the path); another OSError is internal (1)."""
+    import errno
+    import harness.cli as cli
+    for code, expected in ((errno.ENOSPC, 2), (errno.EROFS, 2), (errno.EIO, 1)):
+        def fail(a, code=code):
+            raise OSError(code, os.strerror(code), str(tmp_path / "results.json"))
+        monkeypatch.setattr(cli, "cmd_evaluate", fail)  # the parser binds it when main builds it
+        assert cli.main(["evaluate", "--output", str(tmp_path / "results.json")]) == expected
+        err = capsys.readouterr().err
+        assert "results.json" in err

@@ -58,6 +58,17 @@ def train_stopped_after_epoch_1(monkeypatch, *args, **kwargs) -> None:
     monkeypatch.setattr(train_mod, "_run_epoch", run_epoch)
 
 
+def test_a_training_stopped_before_its_validation_validates_when_run_again(tmp_path):
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=6, val=1)
+    ckpt = train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=1, progress=False)
+    state = torch.load(ckpt, weights_only=False)
+    expected = state.pop("val_ap")
+    torch.save(state, ckpt)  # the last epoch's checkpoint, written just before a stop
+    train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=1, progress=False)
+    again = torch.load(ckpt, weights_only=False)
+    assert again["val_ap"] == expected and again["epoch"] == 1
+
+
 def test_resumed_training_sums_its_seconds(tmp_path, monkeypatch):
     """A run stopped after epoch 1 and resumed reports the time of both sessions."""
     data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=1)
