@@ -17,14 +17,19 @@ def wrap_angle(a):
     return (np.asarray(a, dtype=np.float64) + np.pi) % (2 * np.pi) - np.pi
 
 
-def corners_bev(boxes: np.ndarray) -> np.ndarray:
-    """(K, 4, 2) BEV corners, counter-clockwise."""
-    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    local = _UNIT[None] * boxes[:, None, 3:5]  # (K, 4, 2) in the box frame
+def box_to_lidar(boxes: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """(K, P, D) points given in each box's own frame (metres from its centre, x along its
+    heading; D = 2 for BEV, 3 with z) -> the LiDAR frame: turned by the yaw, moved to the centre."""
     c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
     x = local[..., 0] * c - local[..., 1] * s + boxes[:, None, 0]
     y = local[..., 0] * s + local[..., 1] * c + boxes[:, None, 1]
-    return np.stack([x, y], axis=-1)
+    return np.stack([x, y, *([local[..., 2] + boxes[:, None, 2]] if local.shape[-1] == 3 else [])], axis=-1)
+
+
+def corners_bev(boxes: np.ndarray) -> np.ndarray:
+    """(K, 4, 2) BEV corners, counter-clockwise."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    return box_to_lidar(boxes, _UNIT[None] * boxes[:, None, 3:5])
 
 
 def corners_3d(boxes: np.ndarray) -> np.ndarray:

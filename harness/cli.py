@@ -198,6 +198,14 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _bad_input(e: Exception) -> bool:
+    """Errors that are the input's, not the program's: ValueErrors (``harness.kitti.KittiError`` and
+    ``harness.infer.ContractError`` among them), bad paths, and full or read-only disks."""
+    return (isinstance(e, (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError,
+                           PermissionError))
+            or isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS))
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from harness.malloc import keep_freed_memory
@@ -207,18 +215,10 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print(f"sotif-bench {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
         return 130
-    except OSError as e:
-        if isinstance(e, (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError, PermissionError)) \
-                or e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS):  # bad paths, full or read-only disks
-            print(f"sotif-bench {args.command}: error: {e}", file=sys.stderr)  # the path and the problem
+    except Exception as e:  # noqa: BLE001 - bad input exits 2, anything else is reported and exits 1
+        if _bad_input(e):
+            print(f"sotif-bench {args.command}: error: {e}", file=sys.stderr)  # the file and the problem
             return BAD_INPUT
-        traceback.print_exc()
-        print(f"sotif-bench {args.command}: internal error (see the trace above)", file=sys.stderr)
-        return INTERNAL
-    except ValueError as e:  # harness.kitti.KittiError and harness.infer.ContractError are ValueErrors
-        print(f"sotif-bench {args.command}: error: {e}", file=sys.stderr)
-        return BAD_INPUT
-    except Exception:  # noqa: BLE001 - the last line of defence: report, exit 1
         traceback.print_exc()
         print(f"sotif-bench {args.command}: internal error (see the trace above)", file=sys.stderr)
         return INTERNAL

@@ -365,8 +365,9 @@ def predict(onnx_path, data, out, split: str = "test", runtime: str = "onnxrunti
 
 
 def _refuse_unrecorded_results(out: Path) -> None:
-    if not (out / ".progress.json").is_file() and _result_files(out):
-        raise ValueError(f"{out}: holds result files ({_result_files(out)[0].name}, ...) that no earlier "
+    found = [] if (out / ".progress.json").is_file() else _result_files(out)
+    if found:
+        raise ValueError(f"{out}: holds result files ({found[0].name}, ...) that no earlier "
                          "'sotif-bench predict' into this folder recorded; remove them or choose another --out")
 
 

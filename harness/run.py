@@ -347,7 +347,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         cfg = replace(cfg, jobs=jobs)
     profile = cfg.profile
     run_dir.mkdir(parents=True, exist_ok=True)
-    with _run_lock(run_dir):
+    with folder_lock(run_dir, "run"):
         stale = remove_temp_files(run_dir)
         if stale and progress:
             print(f"removed {len(stale)} temp file(s) of writes an interrupted run left unfinished", flush=True)
@@ -375,11 +375,6 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         atomic_write_text(run_dir / "results.json", json.dumps(result, indent=1, default=str))
         render(run_dir)
     return run_dir
-
-
-def _run_lock(run_dir: Path):
-    """Hold ``RUN/.lock`` for the run (``harness.kitti.folder_lock``)."""
-    return folder_lock(run_dir, "run")
 
 
 def _wall_span(infos: dict[str, dict]) -> float | None:

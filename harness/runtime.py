@@ -56,7 +56,8 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
     model.eval()
     det = OnnxDetector(onnx_path)
     t_torch, t_ort, agree = [], [], []
-    for fid in _frames(data, n_frames):
+    fids = _frames(data, n_frames)
+    for fid in fids:
         points, _, image, l2i, _ = _frame_inputs(det, data, fid)
         args = [torch.from_numpy(points)]
         if det.info.uses_camera:
@@ -71,7 +72,7 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
     return {"onnxruntime": latency_summary(t_ort), "torch_eager_ms_p50": p50_t, "ort_ms_p50_same_frames": p50_o,
             "ort_speedup": p50_t / p50_o, "agreement": _agreement(agree),
             # per-frame figures, so that every summary above can be recomputed from the run's files
-            "frames_ms": {"frame_ids": _frames(data, n_frames), "onnxruntime": t_ort,
+            "frames_ms": {"frame_ids": fids, "onnxruntime": t_ort,
                           "torch_eager": t_torch},
             "peak_memory_mb": peak_memory_mb(onnx_path, data, min(n_frames, 5))}
 

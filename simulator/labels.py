@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from harness.boxes import corners_3d, wrap_angle
+from harness.boxes import box_to_lidar, corners_3d, wrap_angle
 from harness.kitti import Calib, Labels
 from simulator.lidar import Pose
 from simulator.raycast import RayScene, rays_hit_triangles
@@ -68,11 +68,7 @@ def box_lattice(boxes: np.ndarray, grid: int = TRUNCATION_GRID) -> np.ndarray:
     """(K, grid**3, 3) LiDAR-frame points at the cell centres of a grid x grid x grid split of each box."""
     f = (np.arange(grid) + 0.5) / grid - 0.5
     unit = np.stack(np.meshgrid(f, f, f, indexing="ij"), -1).reshape(-1, 3)
-    local = unit[None] * boxes[:, None, 3:6]
-    c, s = np.cos(boxes[:, 6])[:, None], np.sin(boxes[:, 6])[:, None]
-    return np.stack([local[..., 0] * c - local[..., 1] * s + boxes[:, None, 0],
-                     local[..., 0] * s + local[..., 1] * c + boxes[:, None, 1],
-                     local[..., 2] + boxes[:, None, 2]], -1)
+    return box_to_lidar(boxes, unit[None] * boxes[:, None, 3:6])
 
 
 def truncation(boxes: np.ndarray, calib: Calib, width: int, height: int, grid: int = TRUNCATION_GRID) -> np.ndarray:

@@ -103,9 +103,9 @@ def test_wall_span_of_overlapping_stages():
 
 
 def test_a_second_run_into_the_same_folder_is_refused(tmp_path):
-    from harness.run import _run_lock
+    from harness.kitti import folder_lock
     (tmp_path / "results.json").write_text("{}")
-    with _run_lock(tmp_path):
+    with folder_lock(tmp_path, "run"):
         with pytest.raises(ValueError, match=f"{tmp_path}: another sotif-bench run is writing to this folder"):
             run(models=["pointpillars"], out=tmp_path, progress=False, config=TINY)
     assert (tmp_path / "results.json").read_text() == "{}" and not (tmp_path / "config.json").exists()
