@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -371,10 +372,25 @@ def _refuse_unrecorded_results(out: Path) -> None:
                          "'sotif-bench predict' into this folder recorded; remove them or choose another --out")
 
 
+def _read_journal(path: Path) -> dict[str, dict]:
+    """``predict``'s per-frame record (``out/.frames.jsonl``: one JSON line per predicted frame,
+    appended after its result files): frame id -> latency and point count. A line cut off by a
+    kill is skipped; that frame keeps its results and has no timing."""
+    rows = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                row = json.loads(line)
+                rows[str(row["frame_id"])] = row
+            except (ValueError, KeyError, TypeError):
+                continue
+    return rows
+
+
 def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], stamp: dict, progress: bool) -> dict:
     from tqdm import tqdm
 
-    progress_file = out / ".progress.json"
+    progress_file, journal = out / ".progress.json", out / ".frames.jsonl"
     if progress_file.is_file():
         try:
             same = json.loads(progress_file.read_text()) == stamp
@@ -383,33 +399,48 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
         if not same:
             for old in _result_files(out):
                 old.unlink()  # results of another model, runtime, split or data set: start over
+            journal.unlink(missing_ok=True)
     else:
         _refuse_unrecorded_results(out)
+        journal.unlink(missing_ok=True)  # a record without its stamp belongs to no results here
     atomic_write_text(progress_file, json.dumps(stamp))
-    latencies, n_points = [], []
-    for fid in tqdm(ids, desc=f"predict {det.info.architecture}", disable=not progress, unit="frame"):
-        if (out / f"{fid}.txt").is_file():
-            continue
-        points, calib, image, l2i, hw = _frame_inputs(det, data, fid)
-        if not latencies:
-            det(points, image, l2i)  # warm-up: first-run allocations are not latency
-        t0 = time.perf_counter()
-        res = det(points, image, l2i)
-        latencies.append(1000 * (time.perf_counter() - t0))
-        n_points.append(len(points))
-        if det.info.two_stage:
-            write_labels(out / "rois" / f"{fid}.txt", boxes_to_results(res["rois"], res["roi_scores"], calib, hw))
-            if "rcnn_boxes" in res:
-                write_labels(out / "rcnn" / f"{fid}.txt",
-                             boxes_to_results(res["rcnn_boxes"], res["roi_scores"], calib, hw))
-        write_labels(out / f"{fid}.txt", boxes_to_results(res["boxes"], res["scores"], calib, hw))
-    summary = latency_summary(latencies) | {"n_frames": len(ids), "n_points_mean": float(np.mean(n_points)) if n_points else None,
-                                           **stamp, "architecture": det.info.architecture,
-                                           "two_stage": det.info.two_stage, "uses_camera": det.info.uses_camera}
-    if latencies or not (out / "predict.json").is_file():
-        atomic_write_text(out / "predict.json", json.dumps(summary, indent=1))
-        atomic_write_text(out / "latency_ms.csv", "latency_ms\n" + "".join(f"{v:.4f}\n" for v in latencies))
-    return json.loads((out / "predict.json").read_text())
+    warm = ran = False
+    with open(journal, "a+b") as record:
+        if record.tell() and (record.seek(-1, os.SEEK_END), record.read(1))[1] != b"\n":
+            record.write(b"\n")  # end a line a kill cut off, so the next record starts its own
+        for fid in tqdm(ids, desc=f"predict {det.info.architecture}", disable=not progress, unit="frame"):
+            if (out / f"{fid}.txt").is_file():
+                continue
+            points, calib, image, l2i, hw = _frame_inputs(det, data, fid)
+            if not warm:
+                det(points, image, l2i)  # warm-up: first-run allocations are not latency
+                warm = True
+            t0 = time.perf_counter()
+            res = det(points, image, l2i)
+            ms = 1000 * (time.perf_counter() - t0)
+            if det.info.two_stage:
+                write_labels(out / "rois" / f"{fid}.txt", boxes_to_results(res["rois"], res["roi_scores"], calib, hw))
+                if "rcnn_boxes" in res:
+                    write_labels(out / "rcnn" / f"{fid}.txt",
+                                 boxes_to_results(res["rcnn_boxes"], res["roi_scores"], calib, hw))
+            write_labels(out / f"{fid}.txt", boxes_to_results(res["boxes"], res["scores"], calib, hw))
+            record.write(json.dumps({"frame_id": fid, "latency_ms": ms, "n_points": len(points)}).encode() + b"\n")
+            record.flush()
+            ran = True
+    # the timings of every session that predicted frames of this folder, in the split's order
+    rows = _read_journal(journal)
+    timed = [rows[fid] for fid in ids if fid in rows and (out / f"{fid}.txt").is_file()]
+    if not ran and not timed and (out / "predict.json").is_file():
+        return json.loads((out / "predict.json").read_text())  # finished before frames were recorded
+    latencies = [r["latency_ms"] for r in timed]
+    summary = latency_summary(latencies) | {
+        "n_frames": len(ids), "n_points_mean": float(np.mean([r["n_points"] for r in timed])) if timed else None,
+        **stamp, "architecture": det.info.architecture, "two_stage": det.info.two_stage,
+        "uses_camera": det.info.uses_camera}
+    atomic_write_text(out / "latency_ms.csv", "frame_id,latency_ms\n"
+                      + "".join(f"{r['frame_id']},{r['latency_ms']:.4f}\n" for r in timed))
+    atomic_write_text(out / "predict.json", json.dumps(summary, indent=1))
+    return summary
 
 
 def latency_summary(latencies_ms) -> dict:

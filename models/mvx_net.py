@@ -8,8 +8,16 @@
       BEV map --2D backbone (deconv concat)--> anchor head --> score threshold + NMS
 
 Points behind the camera or outside the image get zero image features (their fused feature
-then comes from the LiDAR branch alone). Everything after the voxel encoder is SECOND's
-network (models/second.py), so MVX-Net against DV-SECOND isolates the camera branch.
+then comes from the LiDAR branch alone; MMDetection3D crops the cloud to the camera's view
+instead). Everything after the voxel encoder is SECOND's network (models/second.py). MVX-Net
+against DV-SECOND is therefore close to, not exactly, an A/B of the camera: the voxel encoder
+is a learned two-layer VFE instead of a mean, and MVX-Net trains without ground-truth sampling
+(a pasted car would be missing from the image).
+
+The image CNN + FPN (a ResNet-like network) trains from scratch with the detector, in every
+profile: nothing is downloaded, so there are no pretrained weights. MMDetection3D starts from a
+pretrained ResNet-50 + FPN, which is the premise of the paper's fusion; the ``kitti`` profile
+keeps that config's sizes everywhere else, with a ResNet-18-sized image network.
 """
 from __future__ import annotations
 
@@ -67,7 +75,8 @@ CONFIGS = {
         vfe_channels=(16, 16), fusion_mid=8, fusion_out=16,
     ),
     "compact": MVXNetConfig(),
-    "kitti": _with_second(  # MMDetection3D configs/mvxnet/dv_mvx-fpn_second_secfpn_adamw_2x8_80e_kitti-3d-3class
+    "kitti": _with_second(  # MMDetection3D dv_mvx-fpn_second_secfpn_adamw_2x8_80e_kitti-3d-3class,
+        # except for the image network: ResNet-18-sized, from scratch (no pretrained weights)
         SECOND_KITTI, image_hw=(375, 1242),
         image=ImageBranchConfig(stem_channels=64, stage_channels=(64, 128, 256, 512), blocks_per_stage=2,
                                 fpn_channels=256),

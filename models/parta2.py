@@ -6,7 +6,8 @@
          '--UNet decoder (inverse convs + lateral concat) back to level 0--> voxel features
               --seg head--> foreground score     --part head--> intra-object part location
       --RoI-aware pooling (max of features, avg of part + seg) into g x g x g cells per RoI
-      --3D conv on the pooled grids--> flatten --refine head--> IoU-guided score, residuals
+      --submanifold 3D convs on the occupied pooled cells, 2x max-pool--> flatten
+      --refine head--> IoU-guided score, residuals
       --decode--> rcnn_boxes (K, 7) --score threshold + BEV NMS--> boxes, scores
 """
 from __future__ import annotations
@@ -28,7 +29,7 @@ from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITarget
                              finalize, propose, refine_loss, roi_support, sample_rois)
 from models.roi_pool import roiaware_pool, to_roi_frame
 from models.single_stage import frame_targets
-from models.sparse import SparseInverseConv3d, SparseTensor, SubMConv3d, conv_block, height_compress
+from models.sparse import SparseInverseConv3d, SparseTensor, SubMConv3d, conv_block, height_compress, to_dense
 from models.vfe import MeanVFE
 from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig, output_shape
 from models.voxelize import Grid, hard_voxelize
@@ -54,9 +55,11 @@ class PartA2Config:
     part_margin: float = 0.2  # m: voxels this close outside a box are ignored by the seg loss
     roi_grid: int = 6  # pooled cells per RoI axis
     roi_conv: int = 32  # channels of the convs on the pooled grid
+    seg_mask: float = 0.3  # part location of voxels scored below this pooled as zero
     fc: tuple[int, ...] = (128, 128)
+    branch_fc: tuple[int, ...] = (128,)  # per confidence / residual branch after the shared fc
     dropout: float = 0.3
-    targets: RoITargetConfig = RoITargetConfig(per_frame=32)
+    targets: RoITargetConfig = RoITargetConfig(per_frame=32, fg_iou=0.65)
     output: OutputConfig = OutputConfig()
     weight_seg: float = 1.0
     weight_part: float = 1.0
@@ -78,19 +81,22 @@ CONFIGS = {
         bev_layers=(1,), bev_strides=(1,), bev_filters=(16,), bev_up_strides=(2,),
         bev_up_filters=(16,), head=HeadConfig(anchor_z=-1.0, nms_pre=64), proposals_train=ProposalConfig(64, 0.7, 16),
         proposals_test=ProposalConfig(64, 0.7, 8), roi_grid=4, roi_conv=8, fc=(32,),
-        targets=RoITargetConfig(per_frame=16)),
+        branch_fc=(32,), targets=RoITargetConfig(per_frame=16, fg_iou=0.65)),
     "compact": PartA2Config(),
-    "kitti": PartA2Config(
+    "kitti": PartA2Config(  # OpenPCDet tools/cfgs/kitti_models/PartA2.yaml
         pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), voxel_size=(0.05, 0.05, 0.1),
-        max_voxels=16000,
+        max_voxels=40000,  # OpenPCDet's test-time cap (16000 in training)
+        # a 40-voxel-deep grid (OpenPCDet pads it to 41) with stage-3 z padding 1 ends at depth 2:
+        # 256 BEV channels, as OpenPCDet's NUM_BEV_FEATURES
         backbone3d=VoxelBackboneConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2),
                                             StageSpec(64, (2, 2, 2), (1, 1, 1), 2),
-                                            StageSpec(64, (2, 2, 2), (0, 1, 1), 2)), 128, (0, 0, 0)),
+                                            StageSpec(64, (2, 2, 2), (1, 1, 1), 2)), 128, (0, 0, 0)),
         bev_layers=(5, 5), bev_up_strides=(1, 2),
         bev_filters=(128, 256), bev_up_filters=(256, 256),
         head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
         proposals_train=ProposalConfig(9000, 0.8, 512), proposals_test=ProposalConfig(1024, 0.7, 100),
-        roi_grid=14, roi_conv=64, fc=(256, 256), targets=RoITargetConfig(per_frame=128, gt_jitter=0)),
+        roi_grid=12, roi_conv=64, fc=(256, 256, 256), branch_fc=(256, 256),
+        targets=RoITargetConfig(per_frame=128, fg_iou=0.65, gt_jitter=0)),
 }
 
 
@@ -146,49 +152,61 @@ def part_targets(xyz: Tensor, gt: Tensor, margin: float) -> tuple[Tensor, Tensor
     return fg.float(), near.any(0) & ~fg, part.clamp(0.0, 1.0)
 
 
-class GridBatchNorm(nn.BatchNorm3d):
-    """BatchNorm3d whose inference form is the affine map (exports for a data-dependent K)."""
+def roi_sparse_grid(pooled: Tensor, occupied: Tensor) -> SparseTensor:
+    """The occupied cells of K pooled RoI grids as one SparseTensor: pooled (K, g, g, g, C),
+    occupied (K, g, g, g) bool. RoI k's cell (a, b, c) sits at (k * (g + 1) + a, b, c): the empty
+    slab between two RoIs keeps a 3x3x3 submanifold conv from reaching across them, so one
+    SubMConv3d over the stack is a submanifold conv per RoI (spconv's batch axis)."""
+    k, g = pooled.shape[0], pooled.shape[1]
+    idx = torch.nonzero(occupied)  # (P, 4): roi, a, b, c
+    coords = torch.stack([idx[:, 0] * (g + 1) + idx[:, 1], idx[:, 2], idx[:, 3]], 1)
+    feats = pooled[idx[:, 0], idx[:, 1], idx[:, 2], idx[:, 3]]  # (P, C)
+    return SparseTensor(feats, coords, (k * (g + 1), g, g))
 
-    def forward(self, x: Tensor) -> Tensor:
-        if self.training:
-            return super().forward(x)
-        scale = self.weight / torch.sqrt(self.running_var + self.eps)  # (C,)
-        shift = self.bias - self.running_mean * scale
-        return x * scale[:, None, None, None] + shift[:, None, None, None]
 
-
-def _conv3d(c_in: int, c_out: int, stride: int) -> nn.Sequential:
-    return nn.Sequential(nn.Conv3d(c_in, c_out, 3, stride=stride, padding=1, bias=False),
-                         GridBatchNorm(c_out), nn.ReLU())
+def roi_dense_grid(x: SparseTensor, k: int, g: int) -> Tensor:
+    """Inverse of :func:`roi_sparse_grid`: (K, C, g, g, g), zeros at the empty cells."""
+    dense = to_dense(x)  # (C, K * (g + 1), g, g)
+    return dense.reshape(dense.shape[0], k, g + 1, g, g)[:, :, :g].permute(1, 0, 2, 3, 4)
 
 
 class PartAggregationHead(nn.Module):
-    """RoI-aware pooling -> 3D conv on the pooled grids -> refinement.
+    """RoI-aware pooling -> submanifold convs on the occupied pooled cells -> refinement
+    (OpenPCDet's PartA2FCHead / MMDetection3D's PartA2BboxHead).
 
-    Part branch: avg-pooled (part location, segmentation score); feature branch: max-pooled
-    decoder features. Each passes a 3D conv; they are concatenated, convolved with stride 2,
-    flattened and fed to the IoU-guided refinement head.
+    Part branch: avg-pooled (part location, segmentation score), with the part location of
+    voxels scored below ``seg_mask`` set to zero (SEG_MASK_SCORE_THRESH: the part head is trained
+    on the foreground only); feature branch: max-pooled decoder features. Each branch is two
+    SubM convs over the RoI cells that hold a voxel; the branches are concatenated, merged by one
+    more SubM conv, max-pooled 2x2x2 (the empty cells stay zero, as spconv's SparseMaxPool3d),
+    flattened and fed to the refinement head.
     forward(rois (K, 7), xyz (V, 3), feats (V, C), seg (V,), part (V, 3)) -> logit (K,), deltas (K, 7).
     """
 
     def __init__(self, cfg: PartA2Config):
         super().__init__()
         g, c = cfg.roi_grid, cfg.roi_conv
-        self.grid = (g, g, g)
-        self.part_branch = _conv3d(4, c, stride=1)
-        self.feat_branch = _conv3d(cfg.backbone3d.stem_channels, c, stride=1)
-        self.merge = _conv3d(2 * c, 2 * c, stride=2)
-        side = (g - 1) // 2 + 1
-        self.refine = RefineHead(2 * c * side ** 3, cfg.fc, cfg.dropout)
+        self.g, self.seg_mask = g, cfg.seg_mask
+        self.part_branch = nn.Sequential(conv_block(SubMConv3d(4, c, 3), c), conv_block(SubMConv3d(c, c, 3), c))
+        c1 = cfg.backbone3d.stem_channels
+        self.feat_branch = nn.Sequential(conv_block(SubMConv3d(c1, c, 3), c), conv_block(SubMConv3d(c, c, 3), c))
+        self.merge = conv_block(SubMConv3d(2 * c, 2 * c, 3), 2 * c)
+        side = -(-g // 2)
+        self.refine = RefineHead(2 * c * side ** 3, cfg.fc, cfg.branch_fc, cfg.dropout)
 
     def forward(self, rois: Tensor, xyz: Tensor, feats: Tensor, seg: Tensor,
                 part: Tensor) -> tuple[Tensor, Tensor]:
-        parts = torch.cat([part, seg[:, None]], 1)  # (V, 4)
-        pooled_feat, pooled_part = roiaware_pool(rois, xyz, feats, parts, self.grid)  # (K, g, g, g, C)
-        x_part = self.part_branch(pooled_part.permute(0, 4, 1, 2, 3))  # (K, c, g, g, g)
-        x_feat = self.feat_branch(pooled_feat.permute(0, 4, 1, 2, 3))  # (K, c, g, g, g)
-        merged = self.merge(torch.cat([x_part, x_feat], 1))  # (K, 2c, g', g', g')
-        return self.refine(merged.flatten(1))
+        part = part * (seg >= self.seg_mask).to(part.dtype)[:, None]
+        parts = torch.cat([part, seg[:, None], torch.ones_like(seg)[:, None]], 1)  # (V, 5)
+        pooled_feat, pooled = roiaware_pool(rois, xyz, feats, parts, (self.g,) * 3)  # (K, g, g, g, C)
+        occupied = pooled[..., 4] > 0.5  # the mean of ones: 1 in a cell with a voxel, else 0
+        cells = roi_sparse_grid(torch.cat([pooled[..., :4], pooled_feat], -1), occupied)
+        x_part = self.part_branch(cells.with_features(cells.features[:, :4]))
+        x_feat = self.feat_branch(cells.with_features(cells.features[:, 4:]))
+        merged = self.merge(cells.with_features(torch.cat([x_part.features, x_feat.features], 1)))
+        dense = roi_dense_grid(merged, rois.shape[0], self.g)  # (K, 2c, g, g, g)
+        pooled_down = F.max_pool3d(dense, 2, 2, ceil_mode=True)  # (K, 2c, g', g', g')
+        return self.refine(pooled_down.flatten(1))
 
 
 class PartA2(Detector):
@@ -248,8 +266,8 @@ class PartA2(Detector):
             rois, _ = propose(self.rpn, bev, self.cfg.proposals_train)
         targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng)
         targets.rois, targets.iou, targets.gt = (t.to(device) for t in (targets.rois, targets.iou, targets.gt))
-        logit, deltas = self.rcnn(targets.rois, xyz, feats, torch.sigmoid(seg).detach(),
-                                  torch.sigmoid(part).detach())
+        # the seg score enters stage 2 detached, the part locations not (as OpenPCDet)
+        logit, deltas = self.rcnn(targets.rois, xyz, feats, torch.sigmoid(seg).detach(), torch.sigmoid(part))
         losses.update(refine_loss(logit, deltas, targets, self.cfg.targets))
         c = self.cfg
         losses["loss"] = (losses["loss"] + c.weight_seg * losses["seg"] + c.weight_part * losses["part"]

@@ -5,7 +5,7 @@
       --seg head--> foreground logit per point   --bin head--> one box proposal per point
       --top-k by foreground score + BEV NMS--> rois (K, 7), roi_scores (K,)
       --point RoI pooling, canonical transform--> (K, S, 3 + 2 + C)
-      --RoI PointNet++ (set abstraction x3)--> (K, C') --refine head--> IoU-guided score, residual
+      --RoI PointNet++ (set abstraction x3)--> (K, C') --refine head--> car score, residual
       --decode--> rcnn_boxes (K, 7) --score threshold + BEV NMS--> boxes, scores
 
 Stage-1 boxes use PointRCNN's bin-based coding: x and y offsets from the point as a bin in
@@ -61,7 +61,7 @@ class PointRCNNConfig:
     pool_samples: int = 128  # points pooled per RoI
     pool_extra_width: float = 1.0  # m added to l, w, h of a RoI for pooling
     rcnn_sa: tuple = ((32, 0.5, 16, (64, 64)), (8, 1.0, 16, (64, 128)), (None, 0.0, 0, (128, 128)))
-    refine_hidden: tuple[int, ...] = (128, 128)
+    refine_hidden: tuple[int, ...] = (128, 128)  # FC layers of the confidence and the residual branch each
     score_thresh: float = 0.1
     nms_iou: float = 0.1  # BEV IoU of the final NMS
     max_detections: int = 50
@@ -219,7 +219,7 @@ def mlp_head(cin: int, hidden: int, cout: int) -> nn.Sequential:
 
 
 class RCNNNet(nn.Module):
-    """Stage 2: canonical pooled points -> RoI PointNet++ -> IoU-guided logit and residuals."""
+    """Stage 2: canonical pooled points -> RoI PointNet++ -> confidence logit and residuals."""
 
     def __init__(self, cfg: PointRCNNConfig, point_channels: int):
         super().__init__()
@@ -230,7 +230,7 @@ class RCNNNet(nn.Module):
         for npoint, radius, nsample, mlp in cfg.rcnn_sa:
             self.sa.append(RoISetAbstraction(npoint, radius, nsample, (cin, *mlp)))
             cin = mlp[-1]
-        self.head = RefineHead(cin, cfg.refine_hidden)
+        self.head = RefineHead(cin, (), cfg.refine_hidden, dropout=0.0)  # CLS_FC / REG_FC, DP_RATIO 0
 
     def forward(self, pooled: Tensor, empty: Tensor) -> tuple[Tensor, Tensor]:
         """pooled (K, S, 5 + C) -> logit (K,), canonical residuals (K, 7)."""
@@ -256,7 +256,8 @@ class PointRCNN(Detector):
         nn.init.constant_(self.seg_head[-1].bias, -math.log(99.0))  # foreground prior 0.01
         self.box_head = mlp_head(c, cfg.head_channels, bin_channels(cfg))
         self.rcnn = RCNNNet(cfg, c)
-        self.roi_cfg = RoITargetConfig(per_frame=cfg.rois)
+        # pointrcnn.yaml's TARGET_CONFIG: a car / background confidence (CLS_SCORE_TYPE cls)
+        self.roi_cfg = RoITargetConfig(per_frame=cfg.rois, fg_iou=0.55, score_type="cls", score_lo=0.45, score_hi=0.6)
         self.sampling_rng = np.random.default_rng(cfg.seed)
 
     def points_of_interest(self, points: Tensor) -> tuple[Tensor, Tensor]:
@@ -322,9 +323,10 @@ class PointRCNN(Detector):
         return rois, scores[top][slot] * valid.to(scores.dtype), valid
 
     def refine(self, pts: Tensor, feats: Tensor, seg: Tensor, rois: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
-        """Stage 2 on rois (K, 7) -> IoU-guided logit (K,), canonical residuals (K, 7)."""
+        """Stage 2 on rois (K, 7) -> confidence logit (K,), canonical residuals (K, 7)."""
         depth = pts[:, :3].norm(dim=1, keepdim=True) / 70.0 - 0.5  # (n0, 1)
-        extra = torch.cat([torch.sigmoid(seg)[:, None], depth, feats], 1)  # (n0, 2 + C)
+        # stage 2 does not train stage 1 through the pooled points (OpenPCDet pools them under no_grad)
+        extra = torch.cat([torch.sigmoid(seg)[:, None], depth, feats], 1).detach()  # (n0, 2 + C)
         pooled, empty = roi_point_pool(pts[:, :3], extra, rois, self.cfg.pool_samples, self.cfg.pool_extra_width)
         return self.rcnn(pooled, empty | ~valid)
 

@@ -72,6 +72,7 @@ class PVRCNNConfig:
     grid_nsamples: tuple[int, ...] = (16, 16)
     grid_mlps: tuple[tuple[int, ...], ...] = ((32, 32), (32, 32))
     fc: tuple[int, ...] = (128, 128)
+    branch_fc: tuple[int, ...] = (128,)  # per confidence / residual branch after the shared fc
     dropout: float = 0.3
     targets: RoITargetConfig = RoITargetConfig(per_frame=32)
     output: OutputConfig = OutputConfig()
@@ -94,21 +95,23 @@ CONFIGS = {
         bev_up_filters=(16,), head=HeadConfig(anchor_z=-1.0, nms_pre=64),
         proposals_train=ProposalConfig(64, 0.7, 16), proposals_test=ProposalConfig(64, 0.7, 8),
         keypoints=64, raw_mlps=((8,), (8,)), level_nsamples=(8, 8), kp_channels=16, grid=3,
-        grid_nsamples=(8, 8), grid_mlps=((8,), (8,)), fc=(32,),
+        grid_nsamples=(8, 8), grid_mlps=((8,), (8,)), fc=(32,), branch_fc=(32,),
         targets=RoITargetConfig(per_frame=16)),
     "compact": PVRCNNConfig(),
     "kitti": PVRCNNConfig(  # OpenPCDet tools/cfgs/kitti_models/pv_rcnn.yaml
         pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), voxel_size=(0.05, 0.05, 0.1),
-        max_voxels=16000,
+        max_voxels=40000,  # OpenPCDet's test-time cap (16000 in training)
+        # a 40-voxel-deep grid (OpenPCDet pads it to 41) with stage-3 z padding 1 ends at depth 2:
+        # 256 BEV channels, as OpenPCDet's NUM_BEV_FEATURES
         backbone3d=VoxelBackboneConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2),
                                             StageSpec(64, (2, 2, 2), (1, 1, 1), 2),
-                                            StageSpec(64, (2, 2, 2), (0, 1, 1), 2)), 128, (0, 0, 0)),
+                                            StageSpec(64, (2, 2, 2), (1, 1, 1), 2)), 128, (0, 0, 0)),
         bev_layers=(5, 5), bev_strides=(1, 2), bev_filters=(128, 256), bev_up_strides=(1, 2),
         bev_up_filters=(256, 256), head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
         proposals_train=ProposalConfig(9000, 0.8, 512), proposals_test=ProposalConfig(1024, 0.7, 100),
-        keypoints=2048, raw_radii=(0.4, 0.8), raw_mlps=((16, 16), (16, 16)), levels=(1, 2, 3),
-        level_radii=((0.4, 0.8), (0.8, 1.2), (1.2, 2.4)), level_nsamples=(16, 32),
-        kp_channels=128, grid=6, grid_mlps=((64, 64), (64, 64)), fc=(256, 256),
+        keypoints=2048, raw_radii=(0.4, 0.8), raw_mlps=((16, 16), (16, 16)), levels=(0, 1, 2, 3),
+        level_radii=((0.4, 0.8), (0.8, 1.2), (1.2, 2.4), (2.4, 4.8)), level_nsamples=(16, 32),
+        kp_channels=128, grid=6, grid_mlps=((64, 64), (64, 64)), fc=(256, 256), branch_fc=(256, 256),
         targets=RoITargetConfig(per_frame=128, gt_jitter=0)),
 }
 
@@ -190,7 +193,7 @@ class PVRCNN(Detector):
         self.vsa = VoxelSetAbstraction(cfg, [channels[i] for i in cfg.levels], bev_channels)
         self.roi_grid = RoIGridPool(cfg.kp_channels, cfg.grid, cfg.grid_radii, cfg.grid_nsamples,
                                     cfg.grid_mlps)
-        self.refine = RefineHead(self.roi_grid.out_channels * cfg.grid ** 3, cfg.fc, cfg.dropout)
+        self.refine = RefineHead(self.roi_grid.out_channels * cfg.grid ** 3, cfg.fc, cfg.branch_fc, cfg.dropout)
         self.sampling_rng = np.random.default_rng(cfg.seed)
 
     def stage1(self, points: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:

@@ -4,9 +4,9 @@
   sampling (training only, numpy, outside any exported graph).
 - ``encode_canonical`` / ``decode_canonical``: residuals of a box in its RoI's canonical frame
   (centre at the origin, heading along +x), normalised like the residual box coder.
-- ``RefineHead``: shared MLP -> IoU-guided confidence logit and box residuals.
-- ``refine_loss``: IoU-guided scoring (binary cross-entropy against a ramp of the RoI IoU),
-  smooth-L1 residuals and the corner loss on foreground RoIs.
+- ``RefineHead``: shared MLP, then a confidence branch and a residual branch.
+- ``refine_loss``: the confidence (binary cross-entropy against a ramp of the RoI IoU, or a
+  car / background label), smooth-L1 residuals and the corner loss on foreground RoIs.
 - ``ranked_topk`` / ``select_ranked``: top-k, score threshold and rotated NMS with ties ranked
   by index, so torch and onnxruntime keep the same boxes.
 - ``nms_in_order``: greedy rotated NMS of boxes already in rank order; the rotated IoU runs only
@@ -33,16 +33,23 @@ from models.pointnet2 import PointBatchNorm
 
 @dataclass(frozen=True)
 class RoITargetConfig:
-    per_frame: int = 64  # RoIs kept per frame for the stage-2 loss
-    fg_fraction: float = 0.5  # at most this share of them foreground
-    fg_iou: float = 0.55  # IoU >= this: foreground, regressed
-    bg_iou: float = 0.25  # IoU < this: background
-    score_lo: float = 0.25  # IoU-guided score target: 0 below, 1 above score_hi, linear between
-    score_hi: float = 0.75
+    """Stage-2 targets as OpenPCDet's ProposalTargetLayer (defaults: PV-RCNN's TARGET_CONFIG)."""
+    per_frame: int = 64  # RoIs kept per frame for the stage-2 loss (ROI_PER_IMAGE)
+    fg_fraction: float = 0.5  # at most this share of them foreground (FG_RATIO)
+    fg_iou: float = 0.55  # IoU >= this: foreground, regressed (REG_FG_THRESH)
+    easy_bg_iou: float = 0.1  # background below this is easy, above it hard (CLS_BG_THRESH_LO)
+    hard_bg_ratio: float = 0.8  # share of the background drawn from the hard one (HARD_BG_RATIO)
+    score_type: str = "roi_iou"  # confidence target: "roi_iou" (IoU-guided) or "cls" (CLS_SCORE_TYPE)
+    score_lo: float = 0.25  # roi_iou: 0 below, 1 above score_hi, linear between; cls: 0 below,
+    score_hi: float = 0.75  # 1 above score_hi, ignored between (CLS_BG_THRESH, CLS_FG_THRESH)
     gt_jitter: int = 4  # jittered copies of every GT box added to the proposals
     jitter_xyz: float = 0.3  # metres, std of the centre jitter
     jitter_size: float = 0.1  # relative std of the size jitter
     jitter_yaw: float = 0.15  # radians
+
+    def __post_init__(self):
+        if self.score_type not in ("roi_iou", "cls"):
+            raise ValueError(f"score_type must be 'roi_iou' or 'cls', got {self.score_type!r}")
 
 
 @dataclass
@@ -64,10 +71,15 @@ def jitter_boxes(gt: np.ndarray, copies: int, cfg: RoITargetConfig,
 
 def sample_rois(rois: np.ndarray, gt: np.ndarray, cfg: RoITargetConfig,
                 rng: np.random.Generator) -> RoITargets:
-    """Label proposals by IoU with the GT and draw a fg/bg-balanced subset.
+    """Label proposals by IoU with the GT and draw ``cfg.per_frame`` of them, as OpenPCDet's
+    ``ProposalTargetLayer.subsample_rois``.
 
-    rois (K, 7), gt (G, 7) LiDAR frame. Returns at most ``cfg.per_frame`` RoIs; RoIs with IoU
-    between bg_iou and fg_iou are kept only to fill up (they still get an IoU score target).
+    rois (K, 7), gt (G, 7) LiDAR frame. Foreground: IoU >= min(fg_iou, score_hi), at most
+    ``fg_fraction`` of the draw, without replacement. The rest is background (IoU < fg_iou):
+    ``hard_bg_ratio`` of it from the hard one (IoU in [easy_bg_iou, fg_iou)), which teaches the
+    confidence the IoUs between a miss and a hit, and the remainder from the easy one; both
+    drawn with replacement, and from one alone when the other is empty. Without any
+    background, the draw is foreground with replacement.
     """
     rois = np.concatenate([rois.reshape(-1, 7), jitter_boxes(gt, cfg.gt_jitter, cfg, rng)])
     if len(gt):
@@ -78,15 +90,23 @@ def sample_rois(rois: np.ndarray, gt: np.ndarray, cfg: RoITargetConfig,
     else:
         iou = np.zeros(len(rois))
         matched = np.zeros((len(rois), 7), np.float32)
-    fg = np.flatnonzero(iou >= cfg.fg_iou)
-    bg = np.flatnonzero(iou < cfg.bg_iou)
-    mid = np.flatnonzero((iou >= cfg.bg_iou) & (iou < cfg.fg_iou))
-    n_fg = min(len(fg), int(cfg.per_frame * cfg.fg_fraction))
-    chosen = [rng.choice(fg, n_fg, replace=False)]
-    for pool in (bg, mid):
-        room = cfg.per_frame - sum(len(c) for c in chosen)
-        chosen.append(rng.choice(pool, min(room, len(pool)), replace=False))
-    keep = np.concatenate(chosen).astype(np.int64)
+    fg = np.flatnonzero(iou >= min(cfg.fg_iou, cfg.score_hi))
+    easy = np.flatnonzero(iou < cfg.easy_bg_iou)
+    hard = np.flatnonzero((iou >= cfg.easy_bg_iou) & (iou < cfg.fg_iou))
+    if len(easy) + len(hard) == 0:  # nothing but foreground (or no RoI at all)
+        keep = fg[rng.integers(0, len(fg), cfg.per_frame)] if len(fg) else fg
+    else:
+        n_fg = min(int(round(cfg.per_frame * cfg.fg_fraction)), len(fg))
+        n_bg = cfg.per_frame - n_fg
+        if not len(hard):
+            n_hard = 0
+        elif not len(easy):
+            n_hard = n_bg
+        else:
+            n_hard = min(int(n_bg * cfg.hard_bg_ratio), len(hard))
+        keep = np.concatenate([rng.permutation(fg)[:n_fg], hard[rng.integers(0, max(len(hard), 1), n_hard)],
+                               easy[rng.integers(0, max(len(easy), 1), n_bg - n_hard)]])
+    keep = keep.astype(np.int64)
     return RoITargets(rois=torch.from_numpy(rois[keep].astype(np.float32)),
                       iou=torch.from_numpy(iou[keep].astype(np.float32)),
                       gt=torch.from_numpy(matched[keep].astype(np.float32)))
@@ -148,27 +168,43 @@ def corner_loss(pred: Tensor, gt: Tensor, delta: float = 1.0) -> Tensor:
     return F.huber_loss(dist, torch.zeros_like(dist), delta=delta, reduction="none").mean(1)
 
 
+def _fc_stack(c_in: int, widths: Sequence[int], dropout: float) -> tuple[nn.Sequential, int]:
+    """Linear-BN-ReLU layers (dropout after the first), as OpenPCDet's make_fc_layers."""
+    layers: list[nn.Module] = []
+    for i, c_out in enumerate(widths):
+        layers += [nn.Linear(c_in, c_out, bias=False), PointBatchNorm(c_out), nn.ReLU()]
+        if i == 0 and dropout > 0:
+            layers.append(nn.Dropout(dropout))
+        c_in = c_out
+    return nn.Sequential(*layers), c_in
+
+
 class RefineHead(nn.Module):
-    """Shared FC layers on pooled RoI features -> IoU-guided confidence logit and residuals.
+    """Shared FC layers on pooled RoI features, then a confidence branch and a residual branch
+    (SHARED_FC, CLS_FC and REG_FC of OpenPCDet's RoI heads).
 
     forward(x (K, C)) -> (logit (K,), deltas (K, 7)).
     """
 
-    def __init__(self, in_channels: int, hidden: Sequence[int], dropout: float = 0.3):
+    def __init__(self, in_channels: int, hidden: Sequence[int], branch: Sequence[int] = (),
+                 dropout: float = 0.3):
         super().__init__()
         layers: list[nn.Module] = []
         for c_in, c_out in zip([in_channels, *hidden[:-1]], hidden):
             layers += [nn.Linear(c_in, c_out, bias=False), PointBatchNorm(c_out), nn.ReLU(),
                        nn.Dropout(dropout)]
-        self.shared = nn.Sequential(*layers)
-        self.cls = nn.Linear(hidden[-1], 1)
-        self.reg = nn.Linear(hidden[-1], 7)
+        self.shared = nn.Sequential(*layers)  # no shared layers: the branches take x itself
+        width = hidden[-1] if hidden else in_channels
+        self.cls_fc, c_cls = _fc_stack(width, branch, dropout)
+        self.reg_fc, c_reg = _fc_stack(width, branch, dropout)
+        self.cls = nn.Linear(c_cls, 1)
+        self.reg = nn.Linear(c_reg, 7)
         nn.init.normal_(self.reg.weight, std=0.001)
         nn.init.zeros_(self.reg.bias)
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        h = self.shared(x)  # (K, hidden[-1])
-        return self.cls(h).squeeze(1), self.reg(h)
+        h = self.shared(x)  # (K, hidden[-1] or C)
+        return self.cls(self.cls_fc(h)).squeeze(1), self.reg(self.reg_fc(h))
 
 
 def iou_score_target(iou: Tensor, cfg: RoITargetConfig) -> Tensor:
@@ -176,10 +212,21 @@ def iou_score_target(iou: Tensor, cfg: RoITargetConfig) -> Tensor:
     return ((iou - cfg.score_lo) / (cfg.score_hi - cfg.score_lo)).clamp(0.0, 1.0)
 
 
+def score_loss(logit: Tensor, iou: Tensor, cfg: RoITargetConfig) -> Tensor:
+    """Binary cross-entropy of the confidence logits (S,) against the RoIs' IoU (S,): the
+    IoU-guided ramp (``roi_iou``), or car (IoU > score_hi) / background (IoU < score_lo) with
+    the RoIs between ignored (``cls``); the mean over the RoIs that count."""
+    if cfg.score_type == "roi_iou":
+        return F.binary_cross_entropy_with_logits(logit, iou_score_target(iou, cfg))
+    counted = (iou > cfg.score_hi) | (iou < cfg.score_lo)
+    loss = F.binary_cross_entropy_with_logits(logit, (iou > cfg.score_hi).to(logit.dtype), reduction="none")
+    return (loss * counted).sum() / counted.sum().clamp(min=1)
+
+
 def refine_loss(logit: Tensor, deltas: Tensor, targets: RoITargets,
                 cfg: RoITargetConfig) -> dict[str, Tensor]:
     """Stage-2 losses on S sampled RoIs: logit (S,), deltas (S, 7)."""
-    score = F.binary_cross_entropy_with_logits(logit, iou_score_target(targets.iou, cfg))
+    score = score_loss(logit, targets.iou, cfg)
     fg = targets.iou >= cfg.fg_iou  # (S,)
     if bool(fg.any()):
         rois, gt = targets.rois[fg], targets.gt[fg]

@@ -1,3 +1,4 @@
+import json
 import numpy as np
 import pytest
 
@@ -122,9 +123,18 @@ def test_predict_writes_kitti_results_and_resumes(make_onnx, tmp_path, dataset):
     pts = kitti.read_points(kitti.frame_path(dataset, "velodyne", "000000"))
     np.testing.assert_allclose(res.to_lidar(calib)[0, :3], pts[:, :3].mean(axis=0), atol=2e-3)
     assert (out / "rois" / "000000.txt").is_file()
+    first = (out / "latency_ms.csv").read_text().splitlines()
+    assert first[0] == "frame_id,latency_ms" and [r.split(",")[0] for r in first[1:]] == [f"{i:06d}" for i in range(6)]
     (out / "000003.txt").unlink()
+    with open(out / ".frames.jsonl", "a") as f:
+        f.write('{"frame_id": "000004", "laten')  # a record cut off by a kill
     again = predict(onnx_path, dataset, out, progress=False)
-    assert again["n_timed"] == 1  # only the missing frame ran
+    # only the missing frame ran; the summary covers the earlier session's frames too
+    assert again["n_timed"] == 6 and again == json.loads((out / "predict.json").read_text())
+    rows = (out / "latency_ms.csv").read_text().splitlines()
+    assert [r.split(",")[0] for r in rows[1:]] == [f"{i:06d}" for i in range(6)]
+    assert [r for r in rows if not r.startswith("000003")] == [r for r in first if not r.startswith("000003")]
+    assert [r for r in rows if r.startswith("000003")] != [r for r in first if r.startswith("000003")]  # timed again
 
 
 def test_predict_into_a_folder_of_other_results(make_onnx, tmp_path, dataset):

@@ -8,8 +8,8 @@ import torch
 
 from harness.boxes import points_in_boxes
 from models.export import export_onnx, run_onnx
-from models.parta2 import CONFIGS, PartA2, build, part_targets, voxel_centres
-from models.sparse import SparseTensor
+from models.parta2 import CONFIGS, PartA2, build, part_targets, roi_dense_grid, roi_sparse_grid, voxel_centres
+from models.sparse import SparseTensor, SubMConv3d
 
 def test_part_targets_match_reference():
     rng = np.random.default_rng(0)
@@ -43,6 +43,22 @@ def test_voxel_centres_match_reference():
     dx, dy, dz = cfg.voxel_size
     want = [[x0 + dx / 2, y0 + dy / 2, z0 + dz / 2], [x0 + 7.5 * dx, y0 + 5.5 * dy, z0 + 3.5 * dz]]
     np.testing.assert_allclose(got, want, atol=1e-5)
+
+
+def test_submanifold_conv_over_stacked_rois_is_a_conv_per_roi():
+    """One SubMConv3d over the stacked pooled grids equals, per RoI, a dense 3x3x3 conv of the
+    zero-filled grid read at the occupied cells (and zero elsewhere): no tap reaches another RoI."""
+    rng = np.random.default_rng(3)
+    k, g, c = 5, 4, 3
+    pooled = torch.from_numpy(rng.normal(size=(k, g, g, g, c)).astype(np.float32))
+    occupied = torch.from_numpy(rng.uniform(size=(k, g, g, g)) < 0.4)
+    conv = SubMConv3d(c, 2, 3)
+    with torch.no_grad():
+        got = roi_dense_grid(conv(roi_sparse_grid(pooled, occupied)), k, g)  # (K, 2, g, g, g)
+        dense_in = (pooled * occupied[..., None]).permute(0, 4, 1, 2, 3)  # (K, C, g, g, g)
+        weight = conv.weight.reshape(3, 3, 3, c, 2).permute(4, 3, 0, 1, 2)  # (2, C, 3, 3, 3)
+        want = torch.nn.functional.conv3d(dense_in, weight, padding=1) * occupied[:, None]
+    np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-5)
 
 
 def test_outputs_and_loss_falls(two_car_scene, train_steps):

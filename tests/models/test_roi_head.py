@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from harness.boxes import corners_3d, iou_3d, iou_bev, points_in_boxes, wrap_angle
 from models.roi_head import (OutputConfig, RefineHead, RoITargetConfig, box_corners, corner_loss,
                              decode_canonical, encode_canonical, finalize, iou_score_target,
-                             ranked_topk, refine_loss, roi_support, sample_rois, select_ranked)
+                             ranked_topk, refine_loss, roi_support, sample_rois, score_loss, select_ranked)
 from models.nms import nms_in_order, suppression_candidates
 
 
@@ -88,6 +89,58 @@ def test_sample_rois_without_gt_or_proposals():
     assert len(t.rois) == 8 and float(t.iou.max()) == 0.0
     t = sample_rois(np.zeros((0, 7), np.float32), random_boxes(rng, 2), cfg, rng)
     assert len(t.rois) == 8 and (t.iou.numpy() > 0).any()
+
+
+def _shifted(ious) -> np.ndarray:
+    """Copies of a 4 x 2 x 1.5 m box at the origin, moved along x to the given 3D IoUs with it."""
+    ious = np.asarray(ious, np.float64)
+    boxes = np.zeros((len(ious), 7), np.float32)
+    boxes[:, 0] = 4.0 * (1 - ious) / (1 + ious)
+    boxes[:, 3:6] = (4.0, 2.0, 1.5)
+    return boxes
+
+
+@pytest.mark.parametrize("n_fg, n_hard, n_easy", [(30, 40, 40), (3, 40, 40), (3, 2, 40), (3, 40, 0),
+                                                   (3, 0, 40), (30, 0, 0), (0, 40, 40), (0, 0, 5)])
+def test_sample_rois_draws_as_openpcdet(n_fg, n_hard, n_easy):
+    """Counts per pool as OpenPCDet's subsample_rois / sample_bg_inds: foreground (IoU >= 0.55)
+    at most half, without replacement; of the background, 80 % hard (IoU in [0.1, 0.55)), the
+    rest easy, with replacement; one pool alone when the other is empty."""
+    rng = np.random.default_rng(n_fg + 7 * n_hard + 13 * n_easy)
+    gt = _shifted([1.0])
+    ious = np.concatenate([rng.uniform(0.56, 0.99, n_fg), rng.uniform(0.11, 0.54, n_hard),
+                           rng.uniform(0.0, 0.09, n_easy)])
+    cfg = RoITargetConfig(per_frame=32, gt_jitter=0)
+    t = sample_rois(_shifted(ious), gt, cfg, np.random.default_rng(0))
+    got = t.iou.numpy()
+    np.testing.assert_allclose(np.sort(got), np.sort(iou_3d(t.rois.numpy(), gt).max(1)), atol=1e-5)
+    want_fg = min(16, n_fg) if n_hard + n_easy else 32
+    n_bg = 32 - want_fg if n_hard + n_easy else 0
+    want_hard = (n_bg if not n_easy else min(int(n_bg * 0.8), n_hard)) if n_hard else 0
+    assert len(got) == 32
+    assert (got >= 0.55).sum() == want_fg
+    assert ((got >= 0.1) & (got < 0.55)).sum() == want_hard
+    assert (got < 0.1).sum() == n_bg - want_hard
+    fg_rows = t.rois.numpy()[got >= 0.55]
+    if n_hard + n_easy:  # foreground without replacement
+        assert len(np.unique(fg_rows[:, 0])) == len(fg_rows)
+
+
+def test_score_loss_of_both_score_types_matches_reference():
+    rng = np.random.default_rng(6)
+    iou = torch.from_numpy(rng.uniform(0, 1, 300).astype(np.float32))
+    logit = torch.from_numpy(rng.normal(0, 2, 300).astype(np.float32))
+    p = 1 / (1 + np.exp(-logit.numpy().astype(np.float64)))
+    bce = lambda y: -(y * np.log(p) + (1 - y) * np.log(1 - p))  # noqa: E731
+    ramp = np.clip((iou.numpy() - 0.25) / 0.5, 0, 1)
+    got = score_loss(logit, iou, RoITargetConfig())
+    np.testing.assert_allclose(float(got), bce(ramp).mean(), rtol=1e-5)
+    cfg = RoITargetConfig(score_type="cls", score_lo=0.45, score_hi=0.6)
+    counted = (iou.numpy() > 0.6) | (iou.numpy() < 0.45)
+    want = bce((iou.numpy() > 0.6).astype(np.float64))[counted].mean()
+    np.testing.assert_allclose(float(score_loss(logit, iou, cfg)), want, rtol=1e-5)
+    with pytest.raises(ValueError, match="score_type"):
+        RoITargetConfig(score_type="iou")
 
 
 def test_iou_score_target_is_a_clamped_ramp():
