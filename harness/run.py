@@ -7,10 +7,12 @@ per frame, training per epoch, prediction per frame).
 """
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import heapq
 import json
 import os
+import signal
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -206,14 +208,30 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
 def _model_job(cfg: RunConfig, run_dir: Path, name: str, train_hash: str, sotif_hash: str, runtime: str,
                progress: bool, threads: int | None, bars: bool) -> tuple[dict, dict]:
     """Train, export, predict and evaluate one model (in the run's process or a job process)."""
+    if _INTERRUPTED:  # a job process that was interrupted takes no further job from the pool's queue
+        raise KeyboardInterrupt("the run was interrupted")
     stages = Stages(run_dir, progress, bars=bars, prefix=f"[{name}] " if not bars else "")
     tinfo = _train_export(stages, cfg, run_dir, name, train_hash)
     return tinfo, _predict_eval(stages, cfg, run_dir, name, sotif_hash, runtime, threads)
 
 
+_INTERRUPTED = False  # set in a job process by its first SIGINT
+
+
+def _on_interrupt(signum, frame) -> None:
+    """A job process's SIGINT: the first raises KeyboardInterrupt in the job and marks the
+    process as interrupted; a second one (the run forwards Ctrl-C) lets the job's clean-up run."""
+    global _INTERRUPTED
+    if not _INTERRUPTED:
+        _INTERRUPTED = True
+        raise KeyboardInterrupt
+
+
 def _job_init(threads: int, parent: int | None = None) -> None:
     """Set up a spawned job or training-worker process: ``threads`` threads, freed memory kept,
-    and an end once ``parent`` (the pid that started it; default: its parent now) is gone."""
+    an end once ``parent`` (the pid that started it; default: its parent now) is gone, and
+    :func:`_on_interrupt` for SIGINT."""
+    signal.signal(signal.SIGINT, _on_interrupt)
     os.environ["OMP_NUM_THREADS"] = str(threads)
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     parent = os.getppid() if parent is None else parent
@@ -280,6 +298,11 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
                 for fut in ready:
                     finished(pending.pop(fut), fut.result())
         except BaseException:
+            # the jobs stop too (a SIGINT sent to this process alone would otherwise let them train
+            # on, and the pool's queue would start more): what they wrote stays, atomic files
+            for proc in list((getattr(pool, "_processes", None) or {}).values()):
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(proc.pid, signal.SIGINT)
             pool.shutdown(wait=True, cancel_futures=True)
             raise
     return done

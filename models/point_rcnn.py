@@ -62,6 +62,9 @@ class PointRCNNConfig:
     pool_extra_width: float = 1.0  # m added to l, w, h of a RoI for pooling
     rcnn_sa: tuple = ((32, 0.5, 16, (64, 64)), (8, 1.0, 16, (64, 128)), (None, 0.0, 0, (128, 128)))
     refine_hidden: tuple[int, ...] = (128, 128)  # FC layers of the confidence and the residual branch each
+    # pointrcnn.yaml's TARGET_CONFIG: a car / background confidence (CLS_SCORE_TYPE cls)
+    targets: RoITargetConfig = RoITargetConfig(per_frame=64, fg_iou=0.55, score_type="cls", score_lo=0.45,
+                                               score_hi=0.6)
     score_thresh: float = 0.1
     nms_iou: float = 0.1  # BEV IoU of the final NMS
     max_detections: int = 50
@@ -75,6 +78,7 @@ CONFIGS = {
         sa_mlps=(((8, 16),), ((16, 32),)), fp_mlps=((16, 16), (32, 32)), head_channels=16,
         pre_nms=64, rois=16, pool_samples=16, rcnn_sa=((8, 0.5, 8, (16, 16)), (None, 0.0, 0, (16, 32))),
         refine_hidden=(32,), max_detections=20,
+        targets=RoITargetConfig(per_frame=16, fg_iou=0.55, score_type="cls", score_lo=0.45, score_hi=0.6),
     ),
     "compact": PointRCNNConfig(),
     "kitti": PointRCNNConfig(
@@ -87,6 +91,8 @@ CONFIGS = {
         pool_samples=512, rcnn_sa=((128, 0.2, 16, (128, 128, 128)), (32, 0.4, 16, (128, 128, 256)),
                                     (None, 0.0, 0, (256, 256, 512))),
         refine_hidden=(256, 256),
+        targets=RoITargetConfig(per_frame=128, fg_iou=0.55, score_type="cls", score_lo=0.45, score_hi=0.6,
+                                gt_jitter=0),
     ),
 }
 
@@ -256,8 +262,7 @@ class PointRCNN(Detector):
         nn.init.constant_(self.seg_head[-1].bias, -math.log(99.0))  # foreground prior 0.01
         self.box_head = mlp_head(c, cfg.head_channels, bin_channels(cfg))
         self.rcnn = RCNNNet(cfg, c)
-        # pointrcnn.yaml's TARGET_CONFIG: a car / background confidence (CLS_SCORE_TYPE cls)
-        self.roi_cfg = RoITargetConfig(per_frame=cfg.rois, fg_iou=0.55, score_type="cls", score_lo=0.45, score_hi=0.6)
+        self.roi_cfg = cfg.targets
         self.sampling_rng = np.random.default_rng(cfg.seed)
 
     def points_of_interest(self, points: Tensor) -> tuple[Tensor, Tensor]:

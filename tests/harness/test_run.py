@@ -163,3 +163,25 @@ def test_job_processes_end_when_the_run_is_killed(tmp_path):
     if alive:
         os.kill(job, signal.SIGKILL)
     assert not alive
+
+
+def test_an_interrupted_job_process_takes_no_queued_job():
+    # Ctrl-C reaches the job processes too: the running job stops, and a model job that was already
+    # queued to the same process is refused instead of training for many minutes
+    script = ("import os, signal, time, multiprocessing\n"
+              "from concurrent.futures import ProcessPoolExecutor\n"
+              "from harness.run import _job_init, _model_job\n"
+              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_job_init,"
+              " initargs=(1,))\n"
+              "pid = pool.submit(os.getpid).result()\n"
+              "running = pool.submit(time.sleep, 120)\n"
+              "queued = pool.submit(_model_job, None, None, 'pointpillars', '', '', 'onnxruntime', False, 1, False)\n"
+              "time.sleep(1.0)\n"
+              "t0 = time.monotonic()\n"
+              "os.kill(pid, signal.SIGINT)\n"
+              "print(type(running.exception()).__name__, type(queued.exception()).__name__,\n"
+              "      str(queued.exception()), round(time.monotonic() - t0) < 10, flush=True)\n")
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60,
+                         cwd=Path(__file__).parents[2])
+    assert out.stdout.split(None, 2)[:2] == ["KeyboardInterrupt", "KeyboardInterrupt"], out.stderr
+    assert "the run was interrupted" in out.stdout and out.stdout.strip().endswith("True")
