@@ -153,6 +153,26 @@ def test_atomic_write_keeps_old_file_on_failure(tmp_path, monkeypatch):
     assert p.read_text() == "old" and len(list(tmp_path.iterdir())) == 1
 
 
+def test_atomic_write_errors_name_the_target_not_the_temp_file(tmp_path, monkeypatch):
+    import errno
+    import os
+    import tempfile
+    target = tmp_path / "results.json"
+
+    def refuse(dir, prefix, suffix):  # as mkstemp in a read-only folder (the tests may run as root)
+        raise PermissionError(errno.EACCES, "Permission denied", os.path.join(dir, prefix + "abcd1234" + suffix))
+    with monkeypatch.context() as m:
+        m.setattr(tempfile, "mkstemp", refuse)
+        with pytest.raises(PermissionError) as e:
+            kitti.atomic_write_text(target, "x")
+    assert e.value.filename == str(target) and e.value.errno == errno.EACCES
+    monkeypatch.setattr(os, "replace", lambda *a: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left")))
+    with pytest.raises(OSError) as e:
+        kitti.atomic_write_text(target, "x")
+    assert e.value.filename == str(target) and e.value.errno == errno.ENOSPC
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_atomic_write_gives_the_usual_file_mode(tmp_path):
     import os
     umask = os.umask(0)
