@@ -70,9 +70,13 @@ def slot_max(values: Tensor, voxels: Voxels) -> Tensor:
 
 class RowBatchNorm(nn.BatchNorm1d):
     """BatchNorm1d over rows (P, C) whose inference form is a plain affine map, so that a
-    data-dependent number of rows exports (F.batch_norm guards on the size)."""
+    data-dependent number of rows exports (F.batch_norm guards on the size). Training with fewer
+    than two rows (a RoI grid with one occupied cell) normalises with the running statistics."""
 
     def forward(self, x: Tensor) -> Tensor:
+        if self.training and x.shape[0] < 2:
+            return nn.functional.batch_norm(x, self.running_mean, self.running_var, self.weight, self.bias,
+                                            False, 0.0, self.eps)
         if self.training:
             return super().forward(x)
         scale = self.weight / torch.sqrt(self.running_var + self.eps)  # (C,)

@@ -76,3 +76,23 @@ def test_voxel_max_training_form_matches_slot_form_with_gradients():
             grads.append(vals.grad)
         torch.testing.assert_close(outs[0], outs[1], rtol=0, atol=0)
         torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=0)
+
+
+def test_row_batch_norm_trains_on_one_or_no_row():
+    """Fewer than two rows in training (a RoI grid with one occupied cell): the running statistics
+    normalise, as in inference, and stay as they were; two or more rows train as BatchNorm1d."""
+    from models.vfe import RowBatchNorm
+    bn = RowBatchNorm(3)
+    bn.running_mean.copy_(torch.tensor([1.0, -2.0, 0.5]))
+    bn.running_var.copy_(torch.tensor([4.0, 1.0, 0.25]))
+    bn.train()
+    x = torch.tensor([[3.0, -1.0, 1.0]])
+    want = (x - bn.running_mean) / torch.sqrt(bn.running_var + bn.eps)
+    torch.testing.assert_close(bn(x), want)
+    assert bn(torch.zeros(0, 3)).shape == (0, 3)
+    torch.testing.assert_close(bn.running_mean, torch.tensor([1.0, -2.0, 0.5]))
+    rows = torch.randn(16, 3)
+    ref = torch.nn.BatchNorm1d(3)
+    ref.load_state_dict(bn.state_dict())
+    ref.train()
+    torch.testing.assert_close(bn(rows), ref(rows))
