@@ -3,7 +3,6 @@ import itertools
 import numpy as np
 import pytest
 import shapely
-from shapely.geometry import Polygon
 
 from harness import gt_database as gtdb
 from harness import kitti
