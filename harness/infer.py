@@ -404,7 +404,7 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
         _refuse_unrecorded_results(out)
         journal.unlink(missing_ok=True)  # a record without its stamp belongs to no results here
     atomic_write_text(progress_file, json.dumps(stamp))
-    warm = ran = False
+    ran = False  # a frame was predicted in this call
     with open(journal, "a+b") as record:
         if record.tell() and (record.seek(-1, os.SEEK_END), record.read(1))[1] != b"\n":
             record.write(b"\n")  # end a line a kill cut off, so the next record starts its own
@@ -412,9 +412,8 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
             if (out / f"{fid}.txt").is_file():
                 continue
             points, calib, image, l2i, hw = _frame_inputs(det, data, fid)
-            if not warm:
+            if not ran:
                 det(points, image, l2i)  # warm-up: first-run allocations are not latency
-                warm = True
             t0 = time.perf_counter()
             res = det(points, image, l2i)
             ms = 1000 * (time.perf_counter() - t0)

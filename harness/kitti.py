@@ -57,8 +57,8 @@ def atomic_write_bytes(path, data: bytes) -> Path:
     except BaseException as e:
         if tmp is not None:
             Path(tmp).unlink(missing_ok=True)
-        if isinstance(e, OSError) and e.errno is not None and (e.filename is None or e.filename == tmp
-                                       or Path(e.filename).name.startswith(f".{path.name}.")):
+        if isinstance(e, OSError) and e.errno is not None and (
+                e.filename is None or Path(e.filename).name.startswith(f".{path.name}.")):
             # a read-only folder or a full disk: name the file the user asked for, not the temp file
             raise type(e)(e.errno, e.strerror, str(path)) from None
         raise

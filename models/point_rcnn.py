@@ -15,7 +15,7 @@ bin of 2*pi / heading_bins plus residual, size as a residual to the mean car siz
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -36,6 +36,10 @@ from models.roi_head import (
     sample_rois,
 )
 from models.voxelize import Grid, one_point_per_voxel, range_mask
+
+
+# pointrcnn.yaml's TARGET_CONFIG: a car / background confidence (CLS_SCORE_TYPE cls)
+CLS_TARGETS = RoITargetConfig(per_frame=64, fg_iou=0.55, score_type="cls", score_lo=0.45, score_hi=0.6)
 
 
 @dataclass(frozen=True)
@@ -62,9 +66,7 @@ class PointRCNNConfig:
     pool_extra_width: float = 1.0  # m added to l, w, h of a RoI for pooling
     rcnn_sa: tuple = ((32, 0.5, 16, (64, 64)), (8, 1.0, 16, (64, 128)), (None, 0.0, 0, (128, 128)))
     refine_hidden: tuple[int, ...] = (128, 128)  # FC layers of the confidence and the residual branch each
-    # pointrcnn.yaml's TARGET_CONFIG: a car / background confidence (CLS_SCORE_TYPE cls)
-    targets: RoITargetConfig = RoITargetConfig(per_frame=64, fg_iou=0.55, score_type="cls", score_lo=0.45,
-                                               score_hi=0.6)
+    targets: RoITargetConfig = CLS_TARGETS
     score_thresh: float = 0.1
     nms_iou: float = 0.1  # BEV IoU of the final NMS
     max_detections: int = 50
@@ -78,7 +80,7 @@ CONFIGS = {
         sa_mlps=(((8, 16),), ((16, 32),)), fp_mlps=((16, 16), (32, 32)), head_channels=16,
         pre_nms=64, rois=16, pool_samples=16, rcnn_sa=((8, 0.5, 8, (16, 16)), (None, 0.0, 0, (16, 32))),
         refine_hidden=(32,), max_detections=20,
-        targets=RoITargetConfig(per_frame=16, fg_iou=0.55, score_type="cls", score_lo=0.45, score_hi=0.6),
+        targets=replace(CLS_TARGETS, per_frame=16),
     ),
     "compact": PointRCNNConfig(),
     "kitti": PointRCNNConfig(
@@ -91,8 +93,7 @@ CONFIGS = {
         pool_samples=512, rcnn_sa=((128, 0.2, 16, (128, 128, 128)), (32, 0.4, 16, (128, 128, 256)),
                                     (None, 0.0, 0, (256, 256, 512))),
         refine_hidden=(256, 256),
-        targets=RoITargetConfig(per_frame=128, fg_iou=0.55, score_type="cls", score_lo=0.45, score_hi=0.6,
-                                gt_jitter=0),
+        targets=replace(CLS_TARGETS, per_frame=128, gt_jitter=0),
     ),
 }
 
@@ -262,7 +263,6 @@ class PointRCNN(Detector):
         nn.init.constant_(self.seg_head[-1].bias, -math.log(99.0))  # foreground prior 0.01
         self.box_head = mlp_head(c, cfg.head_channels, bin_channels(cfg))
         self.rcnn = RCNNNet(cfg, c)
-        self.roi_cfg = cfg.targets
         self.sampling_rng = np.random.default_rng(cfg.seed)
 
     def points_of_interest(self, points: Tensor) -> tuple[Tensor, Tensor]:
@@ -379,10 +379,10 @@ class PointRCNN(Detector):
             out["rpn_box"] = box.sum() * 0.0
         with torch.no_grad():
             rois, _, valid = self.propose(pts, seg, box)
-        targets = sample_rois(rois[valid].cpu().numpy(), cars.cpu().numpy(), self.roi_cfg, self.sampling_rng)
+        targets = sample_rois(rois[valid].cpu().numpy(), cars.cpu().numpy(), self.cfg.targets, self.sampling_rng)
         targets = RoITargets(targets.rois.to(device), targets.iou.to(device), targets.gt.to(device))
         logit, deltas = self.refine(pts, feats, seg, targets.rois, torch.ones_like(targets.iou, dtype=torch.bool))
-        out.update(refine_loss(logit, deltas, targets, self.roi_cfg))
+        out.update(refine_loss(logit, deltas, targets, self.cfg.targets))
         return out
 
     def loss(self, samples: list[Sample]) -> dict[str, Tensor]:

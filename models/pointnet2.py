@@ -20,6 +20,7 @@ from torch import Tensor, nn
 from torch._higher_order_ops.while_loop import while_loop
 
 from models.base import tracing
+from models.vfe import RowBatchNorm
 
 _FAR = 1.0e4  # metres; position of the padding points used by three_nn_interpolate
 
@@ -123,25 +124,11 @@ def shared_mlp(channels: Sequence[int]) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-class PointBatchNorm(nn.BatchNorm1d):
-    """BatchNorm1d over the last axis of (..., C).
-
-    Training with fewer than two rows normalises with the running statistics; inference is the
-    equivalent affine map, which exports for a data-dependent number of rows (F.batch_norm
-    guards on the size during export).
-    """
+class PointBatchNorm(RowBatchNorm):
+    """:class:`RowBatchNorm` over the last axis of (..., C)."""
 
     def forward(self, x: Tensor) -> Tensor:
-        if not self.training:
-            scale = self.weight / torch.sqrt(self.running_var + self.eps)  # (C,)
-            return x * scale + (self.bias - self.running_mean * scale)
-        flat = x.reshape(-1, x.shape[-1])  # (P, C)
-        if flat.shape[0] < 2:
-            out = nn.functional.batch_norm(flat, self.running_mean, self.running_var, self.weight,
-                                           self.bias, False, 0.0, self.eps)
-        else:
-            out = super().forward(flat)
-        return out.reshape(x.shape)
+        return super().forward(x.reshape(-1, x.shape[-1])).reshape(x.shape)
 
 
 class SetAbstraction(nn.Module):

@@ -193,8 +193,8 @@ class RefineHead(nn.Module):
         for c_in, c_out in zip([in_channels, *hidden[:-1]], hidden):
             layers += [nn.Linear(c_in, c_out, bias=False), PointBatchNorm(c_out), nn.ReLU(),
                        nn.Dropout(dropout)]
-        self.shared = nn.Sequential(*layers)  # no shared layers: the branches take x itself
-        width = hidden[-1] if hidden else in_channels
+        self.shared = nn.Sequential(*layers)
+        width = hidden[-1] if hidden else in_channels  # without shared layers the branches take x
         self.cls_fc, c_cls = _fc_stack(width, branch, dropout)
         self.reg_fc, c_reg = _fc_stack(width, branch, dropout)
         self.cls = nn.Linear(c_cls, 1)
