@@ -96,7 +96,8 @@ CONFIGS = {
         head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
         proposals_train=ProposalConfig(9000, 0.8, 512), proposals_test=ProposalConfig(1024, 0.7, 100),
         roi_grid=12, roi_conv=64, fc=(256, 256, 256), branch_fc=(256, 256),
-        targets=RoITargetConfig(per_frame=128, fg_iou=0.65, gt_jitter=0)),
+        targets=RoITargetConfig(per_frame=128, fg_iou=0.65, gt_jitter=0),
+        output=OutputConfig(score="rcnn")),  # the stage-2 confidence alone, as OpenPCDet
 }
 
 
@@ -248,7 +249,7 @@ class PartA2(Detector):
         xyz, feats, seg, part, bev = self.stage1(points)
         rois, roi_scores = propose(self.rpn, bev, self.cfg.proposals_test)
         logit, deltas = self.rcnn(rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
-        boxes, scores, rcnn_boxes = finalize(rois, logit, deltas, self.cfg.output, roi_support(xyz, rois))
+        boxes, scores, rcnn_boxes = finalize(rois, roi_scores, logit, deltas, self.cfg.output, roi_support(xyz, rois))
         return boxes, scores, rois, roi_scores, rcnn_boxes
 
     def frame_loss(self, sample: Sample, device) -> dict[str, Tensor]:

@@ -287,12 +287,23 @@ def propose(head: AnchorHead, feats: Tensor, cfg: ProposalConfig) -> tuple[Tenso
     return select_ranked(boxes, torch.sigmoid(cls), -1.0, cfg.nms_pre, cfg.nms_iou, cfg.rois)
 
 
+SCORE_RULES = ("rcnn", "geometric")
+
+
 @dataclass(frozen=True)
 class OutputConfig:
-    score_thresh: float = 0.1  # on the IoU-guided stage-2 score
+    score_thresh: float = 0.1  # on the final score
     nms_iou: float = 0.1  # rotated BEV IoU of the final NMS
     max_out: int = 100
     nms_pre: int = 512  # at least the number of RoIs: every refined box may enter the NMS
+    # the final score: "rcnn", the stage-2 confidence alone (OpenPCDet, MMDetection3D), or
+    # "geometric", sqrt(stage-1 RoI score * stage-2 confidence) (CenterPoint's two-stage rule):
+    # a short schedule leaves the IoU-guided confidence noisy, and the RPN score vetoes its outliers
+    score: str = "geometric"
+
+    def __post_init__(self):
+        if self.score not in SCORE_RULES:
+            raise ValueError(f"score must be one of {', '.join(SCORE_RULES)}, got {self.score!r}")
 
 
 def roi_support(xyz: Tensor, rois: Tensor) -> Tensor:
@@ -302,14 +313,24 @@ def roi_support(xyz: Tensor, rois: Tensor) -> Tensor:
     return inside_rois(xyz, rois).to(torch.int32).sum(dim=1) > 0
 
 
-def finalize(rois: Tensor, logit: Tensor, deltas: Tensor, cfg: OutputConfig,
+def final_scores(roi_scores: Tensor, logit: Tensor, rule: str) -> Tensor:
+    """The final score of every refined box (K,) from the RoI scores (K,) and the stage-2
+    confidence logits (K,), by ``OutputConfig.score``."""
+    confidence = torch.sigmoid(logit)
+    if rule == "rcnn":
+        return confidence
+    return torch.sqrt(roi_scores.clamp(min=0.0) * confidence)
+
+
+def finalize(rois: Tensor, roi_scores: Tensor, logit: Tensor, deltas: Tensor, cfg: OutputConfig,
              support: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
-    """rois (K, 7), logit (K,), deltas (K, 7) -> boxes (M, 7), scores (M,), rcnn_boxes (K, 7).
+    """rois (K, 7), roi_scores (K,), logit (K,), deltas (K, 7) -> boxes (M, 7), scores (M,),
+    rcnn_boxes (K, 7).
 
     ``support`` (K,) bool (``roi_support``): a RoI with no LiDAR data inside pooled nothing, so its
     score is only the head's bias; such RoIs give no box (else an empty cloud gives boxes)."""
     rcnn_boxes = decode_canonical(deltas, rois)  # (K, 7)
-    scores = torch.sigmoid(logit)
+    scores = final_scores(roi_scores, logit, cfg.score)
     if support is not None:
         scores = scores * support.to(scores.dtype)
     boxes, scores = select_ranked(rcnn_boxes, scores, cfg.score_thresh,

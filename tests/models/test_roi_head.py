@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from harness.boxes import corners_3d, iou_3d, iou_bev, points_in_boxes, wrap_angle
-from models.roi_head import (OutputConfig, RefineHead, RoITargetConfig, box_corners, corner_loss,
-                             decode_canonical, encode_canonical, finalize, iou_score_target,
+from models.roi_head import (SCORE_RULES, OutputConfig, RefineHead, RoITargetConfig, box_corners, corner_loss,
+                             decode_canonical, encode_canonical, final_scores, finalize, iou_score_target,
                              ranked_topk, refine_loss, roi_support, sample_rois, score_loss, select_ranked)
 from models.nms import nms_in_order, suppression_candidates
 
@@ -244,7 +244,27 @@ def test_roi_support_matches_points_in_boxes_and_gates_finalize():
     assert 0 < got.sum() < len(rois)
     logit, deltas = torch.full((16,), 3.0), torch.zeros(16, 7)  # every RoI confident, unrefined
     cfg = OutputConfig(nms_iou=1.0)  # no suppression: the support alone decides
-    boxes, scores, rcnn = finalize(torch.from_numpy(rois), logit, deltas, cfg, torch.from_numpy(got))
+    roi_scores = torch.full((16,), 0.5)
+    boxes, scores, rcnn = finalize(torch.from_numpy(rois), roi_scores, logit, deltas, cfg, torch.from_numpy(got))
     assert len(boxes) == got.sum() and len(rcnn) == 16
     np.testing.assert_allclose(np.sort(boxes[:, 0].numpy()), np.sort(rois[got, 0]), atol=1e-5)
-    assert len(finalize(torch.from_numpy(rois), logit, deltas, cfg)[0]) == 16
+    assert len(finalize(torch.from_numpy(rois), roi_scores, logit, deltas, cfg)[0]) == 16
+
+
+def test_final_scores_follow_the_configured_rule():
+    rng = np.random.default_rng(6)
+    roi_scores, logit = rng.uniform(0, 1, 50).astype(np.float32), rng.normal(0, 3, 50).astype(np.float32)
+    confidence = 1 / (1 + np.exp(-logit.astype(np.float64)))
+    got = {rule: final_scores(torch.from_numpy(roi_scores), torch.from_numpy(logit), rule).numpy()
+           for rule in SCORE_RULES}
+    np.testing.assert_allclose(got["rcnn"], confidence, rtol=1e-5)
+    np.testing.assert_allclose(got["geometric"], np.sqrt(roi_scores * confidence), rtol=1e-5)
+    # finalize ranks and thresholds by the rule's score
+    rois = random_boxes(rng, 50, spread=30.0)
+    cfg = OutputConfig(nms_iou=1.0, score_thresh=0.3, score="geometric")
+    _, scores, _ = finalize(torch.from_numpy(rois), torch.from_numpy(roi_scores), torch.from_numpy(logit),
+                            torch.zeros(50, 7), cfg)
+    want = np.sort(got["geometric"][got["geometric"] > 0.3])[::-1]
+    np.testing.assert_allclose(scores.numpy(), want, rtol=1e-6)
+    with pytest.raises(ValueError, match="score must be one of"):
+        OutputConfig(score="mean")
