@@ -1,8 +1,31 @@
 """Triangle-soup primitives: (T, 3, 3) float arrays in metres, placed by vectorised transforms."""
 from __future__ import annotations
 
+import signal
+import threading
+
 import numpy as np
-import trimesh
+
+
+def _import_trimesh():
+    """trimesh's ``__init__`` wraps its optional imports in ``except BaseException``, so a Ctrl-C
+    during the import (half a second at the start of every ``simulate``) would be swallowed. In
+    the main thread, SIGINT is only noted during the import and raised again after it."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is None:
+        import trimesh
+        return trimesh
+    noted = []
+    previous = signal.signal(signal.SIGINT, lambda *_: noted.append(True))
+    try:
+        import trimesh
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if noted:
+        signal.raise_signal(signal.SIGINT)  # now under the previous handler
+    return trimesh
+
+
+trimesh = _import_trimesh()
 
 
 def _soup(mesh: trimesh.Trimesh) -> np.ndarray:

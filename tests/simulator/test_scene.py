@@ -118,3 +118,26 @@ def test_camera_brightness_follows_weather_and_cars_show_in_their_box(highway_sc
     outside = np.abs(imgs["ClearNoon", 1] - imgs["ClearNoon", 0])[:, :max(l - 10, 1)].mean()
     assert inside > 20 and outside < 1
     assert imgs["ClearNoon", 1][t:b, l:r, 0].mean() > imgs["ClearNoon", 1][t:b, l:r, 2].mean()  # red paint
+
+
+_POKE_DURING_IMPORT = """
+import importlib.abc, os, signal, sys
+class Poke(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path, target=None):
+        if name == "trimesh.voxel":  # imported inside trimesh's `except BaseException`
+            os.kill(os.getpid(), signal.SIGINT)
+        return None
+sys.meta_path.insert(0, Poke())
+try:
+    import simulator.prims
+except KeyboardInterrupt:
+    sys.exit(3)
+sys.exit(0)
+"""
+
+
+def test_a_ctrl_c_during_the_trimesh_import_is_not_swallowed():
+    import subprocess
+    import sys
+    res = subprocess.run([sys.executable, "-c", _POKE_DURING_IMPORT], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 3, res.stderr
