@@ -49,7 +49,7 @@ TRAIN_CONFIGS = {"tiny": TrainConfig(epochs=2, batch_size=2, lr=3e-3),
                  "compact": TrainConfig(epochs=4, batch_size=2, lr=3e-3),
                  "kitti": TrainConfig(epochs=80, batch_size=4, lr=3e-3)}  # OpenPCDet adam_onecycle
 
-# The compact (default-profile) schedule per model: 12-29 minutes of training each on one CPU
+# The compact (default-profile) schedule per model: 12-28 minutes of training each on one CPU
 # thread beside another job (255 frames, batch 2), so that the seven-model default run, data and
 # inference included, takes about 105 minutes. Val AP40 3D moderate (45 held-out frames)
 # decided the counts: PointPillars 18 epochs (6: 59.2; 12: 83.1, 77.5 in a later run; 18: 85.2; 64 PFN
