@@ -13,6 +13,7 @@ import heapq
 import json
 import os
 import signal
+import sys
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -348,6 +349,9 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
         import torch
         if not torch.cuda.is_available():
             cfg = replace(cfg, device="cpu")
+            print(f"sotif-bench run: no CUDA device here: the {cfg.profile} profile's {cfg.model_profile} models "
+                  f"train on the CPU ({cfg.train_frames} training scenes, each model's {cfg.model_profile} schedule: "
+                  "days on a laptop CPU)", file=sys.stderr, flush=True)
     names = list(models) if models else list(available())
     bad = [m for m in names if m not in MODEL_NAMES]
     if bad:

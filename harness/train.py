@@ -364,6 +364,9 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
         raise ValueError(f"workers must be between 1 and the batch size {batch_size}, got {workers}")
     if workers > 1 and device != "cpu":
         raise ValueError(f"data-parallel workers train on the CPU; got workers={workers} with device {device!r}")
+    if device == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device 'cuda' asked for, but torch {torch.__version__} sees no CUDA device here; "
+                         "train with --device cpu")
     with torch.device(device):
         s = _session(model, data, out, profile, epochs, seed, aug)
         s.net.to(device)

@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from dataclasses import replace
 
-from harness.run import RunConfig, run
+from harness.run import RunConfig, resolve, run
 
 TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2,
                  jobs=1)
@@ -133,6 +134,13 @@ def test_bad_profile_and_model_names():
         run(profile="huge")
     with pytest.raises(ValueError, match="unknown model"):
         run(models=["yolo"], profile="quick")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_the_full_profile_without_cuda_says_it_trains_on_the_cpu(capsys):
+    cfg, _, _ = resolve("full", None, None)
+    assert cfg.device == "cpu"
+    assert "no CUDA device here: the full profile's kitti models train on the CPU" in capsys.readouterr().err
 
 
 def test_job_processes_end_when_the_run_is_killed(tmp_path):
