@@ -122,6 +122,9 @@ def test_camera_brightness_follows_weather_and_cars_show_in_their_box(highway_sc
 
 _POKE_DURING_IMPORT = """
 import importlib.abc, os, signal, sys
+# Python's own handler, whatever the test run inherited (a background job started without job
+# control, as by nohup or `make test &` in a script, ignores SIGINT, and so would this child)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 class Poke(importlib.abc.MetaPathFinder):
     def find_spec(self, name, path, target=None):
         if name == "trimesh.voxel":  # imported inside trimesh's `except BaseException`
