@@ -173,20 +173,17 @@ def test_a_data_parallel_worker_reports_a_bad_frame(tmp_path):
     assert not (tmp_path / "run" / "checkpoint.pt").exists()
 
 
-def test_train_refuses_more_workers_than_frames_in_a_batch(tmp_path, capsys):
+_NO_CUDA = pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--workers", "3"], "workers must be between 1 and the batch size 2, got 3"),
+    pytest.param(["--device", "cuda"], "sees no CUDA device here; train with --device cpu", marks=_NO_CUDA),
+])
+def test_train_refuses_bad_arguments_before_any_work(tmp_path, capsys, flags, message):
     from harness.cli import main
     data = write_synthetic_dataset(tmp_path / "data", frames=2, seed=6)
     assert main(["--quiet", "train", "--model", "pointpillars", "--profile", "tiny", "--data", str(data),
-                 "--out", str(tmp_path / "run"), "--workers", "3"]) == 2
-    assert "workers must be between 1 and the batch size 2, got 3" in capsys.readouterr().err
-    assert not (tmp_path / "run").exists()
-
-
-@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
-def test_train_on_cuda_without_a_cuda_device_is_bad_input(tmp_path, capsys):
-    from harness.cli import main
-    data = write_synthetic_dataset(tmp_path / "data", frames=2, seed=6)
-    assert main(["--quiet", "train", "--model", "pointpillars", "--profile", "tiny", "--data", str(data),
-                 "--out", str(tmp_path / "run"), "--device", "cuda"]) == 2
-    assert "sees no CUDA device here; train with --device cpu" in capsys.readouterr().err
+                 "--out", str(tmp_path / "run"), *flags]) == 2
+    assert message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
