@@ -350,8 +350,8 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
         if not torch.cuda.is_available():
             cfg = replace(cfg, device="cpu")
             print(f"sotif-bench run: no CUDA device here: the {cfg.profile} profile's {cfg.model_profile} models "
-                  f"train on the CPU ({cfg.train_frames} training scenes, each model's {cfg.model_profile} schedule: "
-                  "days on a laptop CPU)", file=sys.stderr, flush=True)
+                  f"train on the CPU ({cfg.train_frames} training scenes, each model on its {cfg.model_profile} "
+                  "schedule, OpenPCDet's GPU settings)", file=sys.stderr, flush=True)
     names = list(models) if models else list(available())
     bad = [m for m in names if m not in MODEL_NAMES]
     if bad:
