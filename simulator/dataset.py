@@ -27,7 +27,7 @@ from simulator.road import RoadConfig
 from simulator.scenario import SotifConfig, TrainConfig
 from simulator.weather import DRY_PRESETS, WEATHER_PRESETS
 
-GENERATOR_VERSION = "1.3"  # bump whenever the same seed gives other bytes
+GENERATOR_VERSION = "1.4"  # bump whenever the same seed gives other bytes
 PRESETS = ("sotif", "train")
 LIDAR_MODELS = ("physics", "carla")
 SOTIF_FRAMES, SOTIF_VAL = 547, 55

@@ -1,9 +1,9 @@
 """Spinning LiDAR: ray pattern from a spec, first return, intensity and weather effects.
 
 Physics mode: received power rho cos(theta) T^2 / r^2 of the first surface hit, detected when
-above the power a `detect_reflectivity` Lambertian target returns at `max_range`; range noise;
-then the weather's soft returns (raindrops, fog, spray, sunlight) replace the hard return
-when they come first. CARLA mode reproduces CARLA's ray-cast LiDAR, which ignores weather.
+at least the spec's P_min (the weakest Lambertian target of `detection_spec`); range noise from the
+signal (LISA); the strongest of target, raindrops and fog returns (the HDL-64E's strongest-return
+mode, as LISA and Hahner et al.); then spray and sunlight returns replace it when they come first. CARLA mode reproduces CARLA's ray-cast LiDAR, which ignores weather.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from simulator import effects
 from simulator.materials import GROUND, REFLECTIVITY
 from simulator.raycast import RayScene
 from simulator.vehicles import Vehicle
-from simulator.weather import WeatherPreset, fog_extinction, rain_rate_mmh, road_water_cover
+from simulator.weather import WeatherPreset, lidar_fog_extinction, rain_rate_mmh, road_water_cover
 from simulator.ziggurat import normals
 
 
@@ -39,9 +39,13 @@ class LidarSpec:
     max_range: float = 120.0  # m
     min_range: float = 1.0  # m
     mount_height: float = 1.73  # m above the road
-    range_noise_m: float = 0.02  # 1 sigma, every return
-    detect_reflectivity: float = 0.02  # weakest normal-incidence target seen at max_range
-    rain_range_noise: float = 0.02  # Goodin et al.: sigma = k r (1 - exp(-R))^2
+    range_noise_m: float = 0.02  # 1 sigma floor, every return (HDL-64E: < 2 cm)
+    # (reflectivity, range m) of Lambertian targets the sensor detects (HDL-64E: pavement 10 % at 50 m,
+    # cars and foliage 80 % at 120 m); P_min is the weakest of them
+    detection_spec: tuple[tuple[float, float], ...] = ((0.10, 50.0), (0.80, 120.0))
+    range_accuracy_m: float = 0.04  # LISA's dR in sigma = dR / sqrt(2 SNR)
+    beam_divergence_rad: float = 3e-3  # full angle (LISA)
+    pulse_half_power_s: float = 20e-9  # tau_H of the sin^2 pulse (Hahner et al.)
     model: str = "physics"  # "physics" or "carla"
 
     @property
@@ -50,7 +54,7 @@ class LidarSpec:
 
     @property
     def min_power(self) -> float:
-        return self.detect_reflectivity / self.max_range ** 2
+        return effects.spec_min_power(self.detection_spec)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -93,7 +97,7 @@ class Pose:
 def detection_range(spec: LidarSpec, weather: WeatherPreset, reflectivity: float = 0.1) -> float:
     """Largest range (m) at which a normal-incidence Lambertian target is still detected."""
     a_rain = effects.marshall_palmer_extinction(rain_rate_mmh(weather))
-    a_fog = fog_extinction(weather)
+    a_fog = lidar_fog_extinction(weather)
     r = np.linspace(spec.min_range, spec.max_range, 20001)
     t2 = effects.two_way_transmission(r, a_rain, a_fog, weather.fog_distance)
     ok = effects.received_power(reflectivity, 1.0, r, t2) >= spec.min_power
@@ -258,8 +262,9 @@ def first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs
     """raycast.merge_hits and hard_returns over Embree's raw output, in three loops.
 
     Static hits (t_s, prim_s, ng_s) of all N rays, vehicle hits (t_d, prim_d, ng_d) of the rays
-    `near` (sorted). Returns ranges before noise (N,) (NaN = lost), intensities (N,) and the
-    sorted indices of the detected rays. The loops: (1) the nearer hit in range -> compact
+    `near` (sorted). Returns ranges before noise (N,) (NaN = lost), intensities (N,), the sorted
+    indices of the detected rays, the free path of every ray (N,) (its surface's range, max_range
+    when none is nearer) and the received power of the detected rays (N,) (NaN = lost). The loops: (1) the nearer hit in range -> compact
     (ray, r, |n . d|, |n|^2, rho, ground) lists, (2) cos(theta) and wet_rho on the ground hits
     (branch-free, so they vectorise), (3) transmission, power threshold and intensity (the same
     decisions as surface_return; intensities within a few ulp, as T^2 exp(-0.004 r) is one exp).
@@ -267,6 +272,8 @@ def first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs
     n = t_s.shape[0]
     r_out = np.full(n, np.nan)
     i_out = np.zeros(n)
+    path = np.full(n, max_range)
+    p_out = np.full(n, np.nan)
     ray, rr, cs, n2, rho = np.empty(n, np.int64), np.empty(n), np.empty(n), np.empty(n), np.empty(n)
     gnd = np.empty(n, np.bool_)
     k, j = 0, 0
@@ -281,6 +288,8 @@ def first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs
                 t, m = float(t_d[j]), mat_d[prim_d[j]]
                 nx, ny, nz = float(ng_d[j, 0]), float(ng_d[j, 1]), float(ng_d[j, 2])
             j += 1
+        if m >= 0:
+            path[i] = min(t, max_range)
         if m >= 0 and t >= min_range and t <= max_range:
             ray[k], rr[k], rho[k], gnd[k] = i, t, refl_table[m], ground_table[m]
             cs[k], n2[k] = abs(nx * dirs[i, 0] + ny * dirs[i, 1] + nz * dirs[i, 2]), nx * nx + ny * ny + nz * nz
@@ -307,21 +316,19 @@ def first_returns(t_s, prim_s, ng_s, mat_s, near, t_d, prim_d, ng_d, mat_d, dirs
                 continue
         i = ray[q]
         r_out[i], i_out[i] = r, min(max(p_i, 0.0), 1.0)
+        p_out[i] = rho[q] * cs[q] * np.exp(-depth) / (r * r)
         ray[m] = i
         m += 1
-    return r_out, i_out, ray[:m]
+    return r_out, i_out, ray[:m], path, p_out
 
 
 @numba.njit(cache=True, error_model="numpy")
-def add_range_noise(r, hit, z, sigma0, goodin_k, max_range):
-    """Range noise on the detected rays `hit`: r[hit] += z * hypot(sigma0, goodin_k r) in place (z (M,)
-    standard normals); returns the ranges with max_range on the lost rays (the path the soft targets can use)."""
-    far = np.full(r.shape[0], max_range)
+def add_range_noise(r, hit, z, power, p_min, sigma0, range_accuracy):
+    """Range noise on the detected rays `hit` in place: r[hit] += z * sigma, sigma = effects.lisa_range_sigma
+    of each ray's received power (z (M,) standard normals)."""
     for q in range(hit.shape[0]):
         i = hit[q]
-        ri = r[i] + z[q] * np.sqrt(sigma0 * sigma0 + (goodin_k * r[i]) ** 2)
-        r[i], far[i] = ri, ri
-    return far
+        r[i] += z[q] * np.sqrt(sigma0 * sigma0 + range_accuracy * range_accuracy * p_min / (2.0 * power[i]))
 
 
 def nearest_soft(sources: list[tuple[np.ndarray, np.ndarray, float]]):
@@ -342,20 +349,22 @@ def physics_returns(st: dict, near: np.ndarray, dy: dict, scene: RayScene, world
     n = len(world_dirs)
     cover = road_water_cover(weather)
     rain = rain_rate_mmh(weather)
-    a_rain, a_fog = effects.marshall_palmer_extinction(rain), fog_extinction(weather)
-    goodin_k = float(effects.goodin_range_sigma(1.0, rain, spec.rain_range_noise))
-    r_out, i_out, hit = first_returns(
+    a_rain, a_fog, fog_start = effects.marshall_palmer_extinction(rain), lidar_fog_extinction(weather), weather.fog_distance
+    p_min = spec.min_power
+    r_out, i_out, hit, path, power = first_returns(
         st["tfar"], st["primID"], st["Ng"], scene.static_material, near, dy["tfar"], dy["primID"], dy["Ng"],
-        scene.dyn_material, world_dirs, REFLECTANCE64, GROUND, cover, a_rain, a_fog, weather.fog_distance,
-        spec.min_power, spec.min_range, spec.max_range)
-    hard_or_far = add_range_noise(r_out, hit, normals(rng, len(hit)), spec.range_noise_m, goodin_k, spec.max_range)
-    sources = []
-    if a_rain > 0:
-        sources.append((*effects.rain_backscatter(hard_or_far, a_rain, rng), 0.02))
-    if a_fog > 0:
-        sources.append((*effects.fog_backscatter(hard_or_far, a_fog, rng), 0.03))
-    sources.append((*effects.sunlight_noise(n, weather.sun_altitude_angle, weather.cloudiness, spec.max_range, rng),
-                    0.01))
+        scene.dyn_material, world_dirs, REFLECTANCE64, GROUND, cover, a_rain, a_fog, fog_start,
+        p_min, spec.min_range, spec.max_range)
+    add_range_noise(r_out, hit, normals(rng, len(hit)), power, p_min, spec.range_noise_m, spec.range_accuracy_m)
+    for idx, soft, p_soft in (
+            effects.rain_drop_returns(path, rain, a_rain, p_min, spec.min_range, spec.beam_divergence_rad, rng),
+            effects.fog_returns(path, a_fog, fog_start, spec.pulse_half_power_s, p_min, spec.max_range)):
+        stronger = ~(power[idx] >= p_soft)  # the target is lost (NaN) or weaker: strongest return
+        idx, soft, p_soft = idx[stronger], soft[stronger], p_soft[stronger]
+        noise = normals(rng, len(idx)) * effects.lisa_range_sigma(p_soft, p_min, spec.range_accuracy_m, spec.range_noise_m)
+        r_out[idx], power[idx] = soft + noise, p_soft
+        i_out[idx] = np.minimum(p_soft * soft ** 2 * np.exp(-effects.CARLA_ATTENUATION * soft), 1.0)
+    sources = [(*effects.sunlight_noise(n, weather.sun_altitude_angle, weather.cloudiness, spec.max_range, rng), 0.01)]
     if cover > 0:
         sources.append((*spray_ranges(spec, pose, vehicles, cover, rng), 0.05))
     idx, soft, level = nearest_soft(sources)

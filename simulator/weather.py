@@ -10,8 +10,14 @@ Mappings chosen here (CARLA's parameters are rendering sliders, not physical uni
 - precipitation class: "rain" when precipitation > 0, "wet" when only wetness or puddle
   deposits are set, else "dry".
 - road water cover in [0, 1]: max(precipitation_deposits, wetness, precipitation) / 100.
-- fog: CARLA's fog_density (0..100) maps linearly to an extinction coefficient with
-  density 100 = meteorological optical range 1000 m (mist), starting at fog_distance metres.
+- fog, camera: CARLA's fog_density (0..100) maps linearly to an extinction coefficient of the
+  rendered haze with density 100 = meteorological optical range 1000 m (mist).
+- fog, LiDAR: none in the 21 presets. CARLA's fog_density is a rendering device (its night presets
+  carry 60-100 to darken the image, and CARLA's weather changes only the camera), so a clear night
+  is a clear atmosphere for a 905 nm LiDAR. A preset is a fog preset for the LiDAR only when it sets
+  `lidar_fog_mor_m` (the fog's meteorological optical range, m): then the LiDAR sees Beer-Lambert
+  extinction alpha = -ln(0.05) / MOR and Hahner et al.'s soft-target back-scatter, beyond
+  fog_distance metres from the sensor.
 """
 from __future__ import annotations
 
@@ -40,6 +46,7 @@ class WeatherPreset:
     mie_scattering_scale: float = 0.03
     rayleigh_scattering_scale: float = 0.0331
     dust_storm: float = 0.0
+    lidar_fog_mor_m: float = 0.0  # physical fog the LiDAR sees (MOR, m); 0 = none (not a CARLA parameter)
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -112,8 +119,13 @@ def road_water_cover(p: WeatherPreset) -> float:
 
 
 def fog_extinction(p: WeatherPreset) -> float:
-    """Fog extinction coefficient in 1/m (Koschmieder: alpha = -ln(0.05) / MOR)."""
+    """Extinction coefficient of the camera's rendered haze in 1/m (Koschmieder: alpha = -ln(0.05) / MOR)."""
     if p.fog_density <= 0:
         return 0.0
     mor = MOR_AT_FULL_FOG_M * 100.0 / p.fog_density
     return -math.log(0.05) / mor
+
+
+def lidar_fog_extinction(p: WeatherPreset) -> float:
+    """Extinction coefficient (1/m) of the fog the LiDAR sees: -ln(0.05) / lidar_fog_mor_m, 0 without fog."""
+    return -math.log(0.05) / p.lidar_fog_mor_m if p.lidar_fog_mor_m > 0 else 0.0

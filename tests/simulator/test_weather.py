@@ -57,3 +57,15 @@ def test_derived_quantities():
 def test_unknown_preset_names_valid_ones():
     with pytest.raises(ValueError, match="ClearNoon"):
         get_preset("Sunny")
+
+
+def test_no_carla_preset_is_a_fog_preset_for_the_lidar():
+    """CARLA's fog_density (60-100 at night) is a rendering device: the LiDAR sees fog only in a fog preset."""
+    from dataclasses import replace
+
+    from simulator.weather import lidar_fog_extinction
+
+    assert all(lidar_fog_extinction(p) == 0.0 for p in WEATHER_PRESETS.values())
+    assert WEATHER_PRESETS["ClearNight"].fog_density == 60.0 and fog_extinction(WEATHER_PRESETS["ClearNight"]) > 0
+    fog = replace(WEATHER_PRESETS["ClearNoon"], lidar_fog_mor_m=80.0)
+    assert math.exp(-lidar_fog_extinction(fog) * 80.0) == pytest.approx(0.05)  # Koschmieder
