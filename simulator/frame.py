@@ -19,9 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from harness import kitti
+from simulator import fidelity
 from simulator.camera import render
-from simulator.labels import frame_labels
-from simulator.lidar import scan
+from simulator.labels import frame_labels, lidar_boxes
+from simulator.lidar import Pose, scan
 from simulator.raycast import RayScene
 from simulator.scenario import FrameState, sotif_run, training_scene
 from simulator.weather import (WEATHER_PRESETS, precipitation_class, rain_rate_mmh, time_of_day)
@@ -35,7 +36,7 @@ ROW_COLUMNS = ("frame_id", "split", "scenario", "weather", "time_of_day", "preci
                "precipitation", "precipitation_deposits", "wetness", "fog_density", "fog_distance",
                "wind_intensity", "sun_altitude_angle", "rain_rate_mmh", "scenario_time_s", "ego_speed_mps",
                "slow_car_speed_mps", "lane_change_time_s", "slow_car_label_index", "fast_car_label_index",
-               "slow_car_distance_m", "n_points", "n_vehicles", "lidar_model")
+               "slow_car_distance_m", "n_points", "n_vehicles", "lidar_model") + fidelity.COLUMNS
 _SCENES: dict = {}
 _RUNS: dict = {}
 
@@ -70,6 +71,26 @@ def frame_state(cfg, job: FrameJob) -> FrameState:
             _RUNS[key] = sotif_run(cfg.road, n, np.random.default_rng([cfg.seed, 21]), cfg.sotif)
         return _RUNS[key][job.step]
     return training_scene(cfg.road, np.random.default_rng([cfg.seed, 22, job.index]), cfg.train)
+
+
+def surface_ranges(scene: RayScene, pose: Pose, mount_height: float, points: np.ndarray) -> np.ndarray:
+    """Range of the first surface along each point's ray for the points a phantom return can be
+    (fidelity.AIR_RANGE_M, above the road plane; NaN: not cast, inf: no surface); vehicles as scanned."""
+    r = np.linalg.norm(points[:, :3].astype(np.float64), axis=1)
+    cast = np.flatnonzero((r < fidelity.AIR_RANGE_M) & (points[:, 2] > 0.15 - mount_height) & (r > 0))
+    out = np.full(len(points), np.nan)
+    if len(cast):
+        dirs = points[cast, :3].astype(np.float64) / r[cast, None]
+        t = scene.cast(np.array([pose.x, pose.y, mount_height]), dirs @ pose.rotation().T).t
+        out[cast] = np.where(t < 1e30, t, np.inf)
+    return out
+
+
+def _fidelity(scene: RayScene, cfg, state: FrameState, points: np.ndarray, weather) -> dict:
+    slow = [i for i, v in enumerate(state.vehicles) if v.role == "slow"]
+    box = lidar_boxes(state.vehicles, state.pose, cfg.lidar.mount_height)[slow[0]] if slow else None
+    return fidelity.frame_fidelity(points, box, surface_ranges(scene, state.pose, cfg.lidar.mount_height, points),
+                                   weather)
 
 
 def _row(cfg, job: FrameJob, state: FrameState, n_points: int, rows: np.ndarray) -> dict:
@@ -135,4 +156,4 @@ def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:
              kitti.atomic_write_bytes(kitti.frame_path(root, "image_2", job.frame_id), encode_png(image)),
              kitti.write_calib(kitti.frame_path(root, "calib", job.frame_id), calib),
              kitti.write_labels(kitti.frame_path(root, "label_2", job.frame_id), labels)]
-    return _row(cfg, job, state, len(points), rows), files
+    return {**_row(cfg, job, state, len(points), rows), **_fidelity(scene, cfg, state, points, weather)}, files

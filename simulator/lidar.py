@@ -2,8 +2,8 @@
 
 Physics mode: received power rho cos(theta) T^2 / r^2 of the first surface hit, detected when
 at least the spec's P_min (the weakest Lambertian target of `detection_spec`); range noise from the
-signal (LISA); the strongest of target, raindrops and fog returns (the HDL-64E's strongest-return
-mode, as LISA and Hahner et al.); then spray and sunlight returns replace it when they come first. CARLA mode reproduces CARLA's ray-cast LiDAR, which ignores weather.
+signal (LISA); the strongest of target, raindrop, fog and spray returns (the HDL-64E's strongest-return
+mode, as LISA and Hahner et al.); then a sunlight false trigger replaces it when it comes first. CARLA mode reproduces CARLA's ray-cast LiDAR, which ignores weather.
 """
 from __future__ import annotations
 
@@ -358,21 +358,33 @@ def physics_returns(st: dict, near: np.ndarray, dy: dict, scene: RayScene, world
     add_range_noise(r_out, hit, normals(rng, len(hit)), power, p_min, spec.range_noise_m, spec.range_accuracy_m)
     for idx, soft, p_soft in (
             effects.rain_drop_returns(path, rain, a_rain, p_min, spec.min_range, spec.beam_divergence_rad, rng),
-            effects.fog_returns(path, a_fog, fog_start, spec.pulse_half_power_s, p_min, spec.max_range)):
-        stronger = ~(power[idx] >= p_soft)  # the target is lost (NaN) or weaker: strongest return
+            effects.fog_returns(path, a_fog, fog_start, spec.pulse_half_power_s, p_min, spec.max_range),
+            spray_returns(spec, pose, vehicles, cover, path, a_rain, rng)):
+        stronger = (p_soft >= p_min) & ~(power[idx] >= p_soft)  # the target is lost (NaN) or weaker: strongest
         idx, soft, p_soft = idx[stronger], soft[stronger], p_soft[stronger]
         noise = normals(rng, len(idx)) * effects.lisa_range_sigma(p_soft, p_min, spec.range_accuracy_m, spec.range_noise_m)
         r_out[idx], power[idx] = soft + noise, p_soft
         i_out[idx] = np.minimum(p_soft * soft ** 2 * np.exp(-effects.CARLA_ATTENUATION * soft), 1.0)
     sources = [(*effects.sunlight_noise(n, weather.sun_altitude_angle, weather.cloudiness, spec.max_range, rng), 0.01)]
-    if cover > 0:
-        sources.append((*spray_ranges(spec, pose, vehicles, cover, rng), 0.05))
     idx, soft, level = nearest_soft(sources)
     hard = r_out[idx]
     use = soft < np.where(np.isnan(hard), np.inf, hard)
     r_out[idx[use]] = soft[use]
     i_out[idx[use]] = level[use] * rng.uniform(0.5, 1.5, int(use.sum()))
     return r_out, i_out
+
+
+SPRAY_REFLECTANCE = 0.05  # a spray cluster as a beam-filling soft target (not a published value)
+
+
+def spray_returns(spec: LidarSpec, pose: Pose, vehicles: list[Vehicle], cover: float, path: np.ndarray,
+                  a_rain: float, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Spray clusters in front of their ray's surface as (sorted ray indices, ranges, received powers):
+    SPRAY_REFLECTANCE T^2 / r^2, so spray competes with the target as the other soft returns do."""
+    idx, r = spray_ranges(spec, pose, vehicles, cover, rng)
+    front = r < path[idx]
+    idx, r = idx[front], r[front]
+    return idx, r, SPRAY_REFLECTANCE * np.exp(-2.0 * a_rain * r) / r ** 2
 
 
 def spray_ranges(spec: LidarSpec, pose: Pose, vehicles: list[Vehicle], cover: float,
