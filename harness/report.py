@@ -136,7 +136,13 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "of frames with the same boxes, largest score difference).",
                 [("", t["runtime"], 2)], ["ap_latency"]),
         Section("data", "Data", "The SOTIF test data per weather preset and one scene per preset.",
-                [("", t["data_by_weather"], 1)], ["data", "bev"]),
+                [("", t["data_by_weather"], 1),
+                 ("What the weather did to the LiDAR: returns on the slow car (within 65 m) and their share of "
+                  "ClearNoon's on the same scenario steps, next to the two-way transmission T^2 the Marshall-Palmer "
+                  "model predicts at the car (the share of return power that gets through; a return is lost only "
+                  "when T^2 pushes it under the sensor's threshold), returns smeared around the car, and phantom "
+                  "returns in the air within 30 m (raindrops, spray, sunlight) per frame.", t["lidar_fidelity"], 2)],
+                ["data", "bev"]),
         Section("stages", "Pipeline stages", "Seconds per stage, as each job recorded it (stages of parallel model jobs overlap, so they add up to more than the wall time).", [("", t["stages"], 1)], []),
     ]
 

@@ -298,6 +298,29 @@ def data_table(meta: pd.DataFrame | None, frame_stats: pd.DataFrame | None) -> p
     return out.rename_axis("weather").reset_index()
 
 
+def fidelity_table(meta: pd.DataFrame | None, clean: str = "ClearNoon", max_range: float = 65.0) -> pd.DataFrame:
+    """Per weather, what the LiDAR model did (the simulator's per-frame fidelity columns): returns on the slow car
+    per frame (frames where it is within max_range), their share of the clean preset's on the same scenario
+    steps, the published extinction model's prediction for that share's power (Marshall-Palmer T^2 at the car),
+    returns smeared around the car per return on it, and returns in the air near the sensor per frame."""
+    need = {"weather", "scenario_time_s", "slow_car_returns", "slow_car_range_m", "slow_car_t2", "air_returns"}
+    if meta is None or not need <= set(meta.columns):
+        return pd.DataFrame()
+    df = meta[meta["slow_car_range_m"].le(max_range)]
+    base = df[df["weather"] == clean].set_index("scenario_time_s")["slow_car_returns"]
+    rows = []
+    for weather, g in df.groupby("weather", sort=False):
+        on = g["slow_car_returns"].sum()
+        shared = g[g["scenario_time_s"].isin(base.index)]  # steps the clean preset has too
+        ref = base.reindex(shared["scenario_time_s"]).sum()
+        rows.append({"weather": weather, "n_frames": len(g), "car_returns": g["slow_car_returns"].mean(),
+                     "car_returns_vs_clear": shared["slow_car_returns"].sum() / ref if ref else np.nan,
+                     "predicted_T2": g["slow_car_t2"].mean(),
+                     "smeared_per_car_return": g["slow_car_smeared"].sum() / on if on else np.nan,
+                     "air_returns": meta.loc[meta["weather"] == weather, "air_returns"].mean()})
+    return pd.DataFrame(rows)
+
+
 def stage_table(summary: dict) -> pd.DataFrame:
     """Wall time per pipeline stage (seconds), as recorded by the run."""
     st = summary.get("stage_seconds") or {}
@@ -372,6 +395,7 @@ def build_tables(run: Run) -> dict[str, pd.DataFrame]:
         "precipitation_class": group_table(run.results, "precipitation_class"),
         "sotif": sotif, "sotif_matrix": sotif_matrix(sotif), "runtime": runtime_table(run.summary),
         "data_by_weather": data_table(run.meta, run.frame_stats), "stages": stage_table(run.summary),
+        "lidar_fidelity": fidelity_table(run.meta),
     }
     return {"overview": overview_table(run, t), **t}
 

@@ -183,3 +183,24 @@ def test_write_tables_writes_three_formats(tmp_path):
     ov = out["overview"].iloc[0]
     assert ov["AP3D"] == 50.0 and ov["SOTIF pass"] == "1/2" and ov["ORT p50 ms"] == 12.0 and ov["stages"] == "one"
     assert ov["mRR"] == pytest.approx(out["robustness"].iloc[0]["mRR"])
+
+
+def test_fidelity_table_compares_each_weather_with_clear_noon_on_the_same_steps():
+    from harness.tables import fidelity_table
+
+    meta = pd.DataFrame({
+        "weather": ["ClearNoon"] * 3 + ["HardRainNoon"] * 2,
+        "scenario_time_s": [0.0, 3.0, 6.0, 3.0, 6.0],
+        "slow_car_returns": [50, 20, 30, 18, 24],
+        "slow_car_smeared": [0, 1, 0, 2, 1],
+        "slow_car_range_m": [40.0, 50.0, 90.0, 50.0, 60.0],  # the 90 m frame is out of range
+        "slow_car_t2": [1.0, 1.0, 1.0, 0.6, 0.64],
+        "air_returns": [0, 2, 1, 7000, 7100],
+    })
+    t = fidelity_table(meta).set_index("weather")
+    assert t.loc["ClearNoon", "n_frames"] == 2 and t.loc["ClearNoon", "car_returns_vs_clear"] == 1.0
+    assert t.loc["HardRainNoon", "car_returns_vs_clear"] == pytest.approx(18 / 20)  # the steps both have
+    assert t.loc["HardRainNoon", "predicted_T2"] == pytest.approx(0.62)
+    assert t.loc["HardRainNoon", "smeared_per_car_return"] == pytest.approx(3 / 42)
+    assert t.loc["ClearNoon", "air_returns"] == pytest.approx(1.0)  # over every frame of the preset
+    assert fidelity_table(meta.drop(columns="air_returns")).empty
