@@ -109,7 +109,7 @@ def cmd_evaluate(a) -> int:
 def cmd_run(a) -> int:
     from harness.run import run
     out = run(profile=a.profile, models=_csv(a.models) if a.models else None, out=Path(a.out) if a.out else None,
-              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs)
+              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, lidar_model=a.lidar_model)
     print(f"report: {out / 'index.html'}")
     return 0
 

@@ -363,15 +363,18 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
 
 
 def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
-        config: RunConfig | None = None, jobs: int | None = None) -> Path:
+        config: RunConfig | None = None, jobs: int | None = None, lidar_model: str | None = None) -> Path:
     """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory.
 
     ``config`` replaces the profile's RunConfig (tests use a smaller one); ``jobs`` its number of
-    models run at once (not part of any stage key: changing it redoes nothing)."""
+    models run at once (not part of any stage key: changing it redoes nothing); ``lidar_model``
+    "carla" simulates every data set with CARLA's weather-blind LiDAR (the paper's protocol)."""
     from harness.report import render
     cfg, names, run_dir = resolve(profile, models, out, config)
     if jobs is not None:
         cfg = replace(cfg, jobs=jobs)
+    if lidar_model is not None:
+        cfg = replace(cfg, lidar_model=lidar_model)
     profile = cfg.profile
     run_dir.mkdir(parents=True, exist_ok=True)
     with folder_lock(run_dir, "run"):

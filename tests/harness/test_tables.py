@@ -204,3 +204,17 @@ def test_fidelity_table_compares_each_weather_with_clear_noon_on_the_same_steps(
     assert t.loc["HardRainNoon", "smeared_per_car_return"] == pytest.approx(3 / 42)
     assert t.loc["ClearNoon", "air_returns"] == pytest.approx(1.0)  # over every frame of the preset
     assert fidelity_table(meta.drop(columns="air_returns")).empty
+
+
+def test_the_papers_rows_stand_beside_ours():
+    ap = {kind: {d: 50.0 for d in ("easy", "moderate", "hard")} for kind in ("R11", "R40")}
+    res = {"second": {"kitti": {"3d": {"0.7": ap}}, "recall": {}},
+           "parta2": {"kitti": {"bev": {"0.7": ap}},
+                      "recall": {s: {t: 0.5 for t in ("0.3", "0.5", "0.7")} for s in ("roi", "rcnn")}}}
+    t = tables.kitti_ap_table(res)
+    paper = t[t["metric"] == tables.PAPER].set_index("model")
+    assert paper.loc["second", "AP40 moderate"] == 81.42 and paper.loc["parta2", "AP11 easy"] == 85.59
+    assert len(t) == 4  # one row of ours and the paper's per model
+    rec = tables.recall_table(res).set_index("model")
+    assert rec.loc[f"second: {tables.PAPER}", "roi@0.5"] == pytest.approx(36.9)
+    assert rec.loc["parta2", "rcnn@0.3"] == 50.0 and np.isnan(rec.loc[f"second: {tables.PAPER}", "roi@0.7"])
