@@ -118,6 +118,9 @@ def cmd_report(a) -> int:
     from harness.report import render
     out = render(Path(a.run_dir))
     print(f"report: {out}")
+    if a.sample:
+        from harness.sample import publish_sample
+        print(f"sample: {publish_sample(Path(a.run_dir), Path(a.sample))}")
     return 0
 
 
@@ -193,7 +196,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report")
-    s.add_argument("run_dir")
+    s.add_argument("run_dir", help="the run folder (reports/NAME)")
+    s.add_argument("--sample", metavar="DIR",
+                   help="then copy the report, tables/*.csv and figures into DIR (the repository's reports/sample)")
     s.set_defaults(func=cmd_report)
     return p
 
