@@ -133,6 +133,18 @@ def test_eta_of_model_jobs():
     assert _eta_seconds([a, b], m, {a: 0.0, b: 0.0}, {a: t_a}, 10 * t_a, 2) == 0.0
 
 
+def test_progress_lines_of_a_job_process(tmp_path, capsys):
+    from harness.run import Stages
+    job = Stages(tmp_path, progress=True, bars=False, prefix="[second] ")
+    job.epoch_line("second")(2, 6, 41.6)
+    job.run("export_second", {"k": 1}, lambda: {})
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == "[second] train second: epoch 2/6, 42 s per epoch, ETA 166 s"
+    assert out[1] == "[second] [run ] export_second" and out[2].startswith("[second] [done] export_second in ")
+    assert Stages(tmp_path, progress=True).epoch_line("second") is None  # a progress bar shows it
+    assert Stages(tmp_path, progress=False, bars=False).epoch_line("second") is None
+
+
 def test_work_left_counts_checkpoint_epochs_and_predicted_frames(tmp_path):
     from harness.run import _work_left
     cfg = replace(TINY, epochs=4)
