@@ -46,9 +46,36 @@ def _output_file(text: str) -> Path:
     return path
 
 
+def _nonempty_csv(text: str | None, option: str) -> list[str] | None:
+    """A comma-separated list option: None when not given, an error when given but empty."""
+    if text is None:
+        return None
+    items = _csv(text)
+    if not items:
+        raise ValueError(f"{option} is empty; leave it out to use the default, or name at least one")
+    return items
+
+
+def _split(split: str, root: Path | None) -> str | Path:
+    """``--split`` as ``predict`` and ``evaluate`` both read it: the name of a split of the data set
+    ``root`` (``root/ImageSets/NAME.txt``), else the path of an ImageSets file."""
+    if root is not None and (root / "ImageSets" / f"{split}.txt").is_file():
+        return split
+    if Path(split).is_file():
+        return Path(split)
+    where = f"a split of {root} (no {root / 'ImageSets' / f'{split}.txt'})" if root is not None else "a split name"
+    raise ValueError(f"--split {split}: neither {where} nor an ImageSets file")
+
+
+def _data_root(labels: str) -> Path:
+    """The data set root of a labels folder (``<root>/training/label_2``, or the root itself)."""
+    path = Path(labels)
+    return path.parent.parent if path.name == "label_2" else path
+
+
 def cmd_simulate(a) -> int:
     from simulator import generate
-    out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=_csv(a.weathers) if a.weathers else None,
+    out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=_nonempty_csv(a.weathers, "--weathers"),
                    seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet)
     print(f"data set written to {out}")
     return 0
@@ -75,7 +102,7 @@ def cmd_export(a) -> int:
 
 def cmd_predict(a) -> int:
     from harness.infer import predict
-    summary = predict(Path(a.onnx), Path(a.data), Path(a.out), split=a.split, runtime=a.runtime,
+    summary = predict(Path(a.onnx), Path(a.data), Path(a.out), split=_split(a.split, Path(a.data)), runtime=a.runtime,
                       progress=not a.quiet)
     p50 = summary.get("latency_ms_p50")
     print(f"{summary['n_frames']} frames -> {a.out}" + (f"; latency p50 {p50:.1f} ms" if p50 else ""))
@@ -84,20 +111,24 @@ def cmd_predict(a) -> int:
 
 def cmd_evaluate(a) -> int:
     from harness.evaluate import evaluate, format_table, write_results
-    labels, predictions, split = a.labels, a.predictions, a.split
+    labels, predictions, split = a.labels, a.predictions, a.split or a.data_split  # --data-split: the old spelling
     _output_file(a.output)
     if a.onnx:  # bring your own detector: predict on the data set, then evaluate
         from harness.infer import predict
         if not a.data:
             raise ValueError("--onnx needs --data DIR (a KITTI data set)")
         data = Path(a.data)
+        split = _split(split or "test", data)
         predictions = predictions or str(Path(a.output).parent / f"predictions_{Path(a.onnx).stem}")
-        predict(Path(a.onnx), data, Path(predictions), split=a.data_split, runtime=a.runtime, progress=not a.quiet)
+        predict(Path(a.onnx), data, Path(predictions), split=split, runtime=a.runtime, progress=not a.quiet)
         labels = labels or str(data / "training" / "label_2")
-        split = split or str(data / "ImageSets" / f"{a.data_split}.txt")
         a.meta = a.meta or (str(data / "meta" / "frames.csv") if a.group_by else None)
     if not labels or not predictions:
         raise ValueError("evaluate needs --labels and --predictions (or --onnx with --data)")
+    if split is not None:  # a split name or file, as a file
+        root = _data_root(labels)
+        split = _split(split, root) if isinstance(split, str) else split
+        split = root / "ImageSets" / f"{split}.txt" if isinstance(split, str) else split
     result = evaluate(labels, predictions, split=split, group_by=a.group_by, meta=a.meta,
                       n_bootstrap=a.bootstrap, seed=a.seed)
     write_results(a.output, result)
@@ -108,7 +139,7 @@ def cmd_evaluate(a) -> int:
 
 def cmd_run(a) -> int:
     from harness.run import run
-    out = run(profile=a.profile, models=_csv(a.models) if a.models else None, out=Path(a.out) if a.out else None,
+    out = run(profile=a.profile, models=_nonempty_csv(a.models, "--models"), out=Path(a.out) if a.out else None,
               progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, lidar_model=a.lidar_model)
     print(f"report: {out / 'index.html'}")
     return 0
@@ -118,83 +149,131 @@ def cmd_report(a) -> int:
     from harness.report import render
     out = render(Path(a.run_dir))
     print(f"report: {out}")
+    if a.sample:
+        from harness.sample import publish_sample
+        print(f"sample: {publish_sample(Path(a.run_dir), Path(a.sample))}")
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="sotif-bench", description=__doc__.splitlines()[0])
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    # --quiet also after the subcommand (``sotif-bench evaluate --quiet ...``)
-    quiet = argparse.ArgumentParser(add_help=False)
-    quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS, help="no progress bars")
-    sub = p.add_subparsers(dest="command", required=True)
+SPLIT_HELP = "a split name of the data set (test, val, train: ImageSets/NAME.txt) or an ImageSets file"
+RUNTIMES = ["onnxruntime", "openvino"]
 
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("sotif-bench")
+    except PackageNotFoundError:  # run from a source tree that is not installed
+        return "unknown (not installed)"
+
+
+def _add_simulate(sub, quiet) -> None:
     s = sub.add_parser("simulate", parents=[quiet],
                        help="simulate the SOTIF test set or training scenes as a KITTI data set")
-    s.add_argument("--preset", choices=["sotif", "train"], required=True)
-    s.add_argument("--out", required=True)
-    s.add_argument("--frames", type=int)
+    s.add_argument("--preset", choices=["sotif", "train"], required=True,
+                   help="sotif: the cut-out scenario under every weather; train: randomised training scenes")
+    s.add_argument("--out", required=True, help="the data set folder to write (resumed if it holds a partial one)")
+    s.add_argument("--frames", type=int, help="number of frames (default: 547 for sotif, 400 for train)")
     s.add_argument("--weathers", help="comma-separated CARLA preset names (default: all 21 / the dry ones)")
-    s.add_argument("--seed", type=int, default=0)
-    s.add_argument("--workers", type=int, default=1)
-    s.add_argument("--lidar-model", choices=["physics", "carla"], default="physics")
+    s.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bytes (default 0)")
+    s.add_argument("--workers", type=int, default=1, help="processes simulating frames at once (default 1)")
+    s.add_argument("--lidar-model", choices=["physics", "carla"], default="physics",
+                   help="physics: weather changes the LiDAR; carla: CARLA's weather-blind LiDAR (default physics)")
     s.set_defaults(func=cmd_simulate)
 
+
+def _add_train(sub, quiet) -> None:
     s = sub.add_parser("train", parents=[quiet], help="train one detector on a KITTI data set")
-    s.add_argument("--model", required=True)
-    s.add_argument("--data", required=True)
-    s.add_argument("--out", required=True)
-    s.add_argument("--profile", choices=["tiny", "compact", "kitti"], default="compact")
-    s.add_argument("--epochs", type=int)
-    s.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--model", required=True, help="model name, e.g. pointpillars (see the README)")
+    s.add_argument("--data", required=True, help="KITTI data set folder with ImageSets/train.txt")
+    s.add_argument("--out", required=True, help="folder for checkpoint.pt (a training there resumes)")
+    s.add_argument("--profile", choices=["tiny", "compact", "kitti"], default="compact",
+                   help="model size: tiny (tests), compact (CPU, default), kitti (the references' settings, GPU)")
+    s.add_argument("--epochs", type=int, help="epochs (default: the profile's schedule for the model)")
+    s.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where to train (default cpu)")
+    s.add_argument("--seed", type=int, default=0, help="random seed of weights, order and augmentation (default 0)")
     s.add_argument("--workers", type=_positive_int,
                    help="data-parallel processes, each with its share of the cores and of every batch "
                         "(default: one per core, at most the batch size; 1 = one process)")
     s.set_defaults(func=cmd_train)
 
+
+def _add_export(sub, quiet) -> None:
     s = sub.add_parser("export", parents=[quiet], help="export a checkpoint to one self-contained ONNX file")
-    s.add_argument("--model", required=True)
-    s.add_argument("--checkpoint", required=True)
-    s.add_argument("--out", required=True)
+    s.add_argument("--model", required=True, help="the model name the checkpoint was trained as")
+    s.add_argument("--checkpoint", required=True, help="checkpoint.pt written by train")
+    s.add_argument("--out", required=True, help="the ONNX file to write")
     s.set_defaults(func=cmd_export)
 
+
+def _add_predict(sub, quiet) -> None:
     s = sub.add_parser("predict", parents=[quiet], help="run an ONNX detector on a data set split, write KITTI results")
-    s.add_argument("--onnx", required=True)
-    s.add_argument("--data", required=True)
-    s.add_argument("--split", default="test")
-    s.add_argument("--out", required=True)
-    s.add_argument("--runtime", choices=["onnxruntime", "openvino"], default="onnxruntime")
+    s.add_argument("--onnx", required=True, help="ONNX file following the contract (README)")
+    s.add_argument("--data", required=True, help="KITTI data set folder")
+    s.add_argument("--split", default="test", help=SPLIT_HELP + " (default test)")
+    s.add_argument("--out", required=True, help="folder for the KITTI result files (a run there resumes)")
+    s.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime", help="inference runtime (default onnxruntime)")
     s.set_defaults(func=cmd_predict)
 
+
+def _add_evaluate(sub, quiet) -> None:
     s = sub.add_parser("evaluate", parents=[quiet], help="KITTI AP, distance bins, recall and per-group tables")
-    s.add_argument("--labels")
-    s.add_argument("--predictions")
-    s.add_argument("--split", help="ImageSets file listing the frames (default: every label file)")
+    s.add_argument("--labels", help="label folder (DATA/training/label_2) or data set folder")
+    s.add_argument("--predictions", help="folder of KITTI result files (from predict)")
+    s.add_argument("--split", help=SPLIT_HELP + " (default: every label file; with --onnx: test)")
     s.add_argument("--group-by", help="a column of meta/frames.csv, e.g. weather")
-    s.add_argument("--meta", help="meta/frames.csv")
-    s.add_argument("--output", required=True, help="results.json")
+    s.add_argument("--meta", help="with --group-by: the data set's meta/frames.csv")
+    s.add_argument("--output", required=True, help="results.json to write")
     s.add_argument("--onnx", help="bring your own detector: predict with this ONNX file first")
     s.add_argument("--data", help="with --onnx: the KITTI data set to run on")
-    s.add_argument("--data-split", default="test", help="with --onnx: the split to run (default test)")
-    s.add_argument("--runtime", choices=["onnxruntime", "openvino"], default="onnxruntime")
+    s.add_argument("--data-split", help="the former spelling of --split with --onnx")
+    s.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime", help="with --onnx: inference runtime")
     s.add_argument("--bootstrap", type=_positive_int, default=200, help="bootstrap resamples for 95%% intervals")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0, help="seed of the bootstrap resampling (default 0)")
     s.set_defaults(func=cmd_evaluate)
 
+
+def _add_run(sub, quiet) -> None:
     s = sub.add_parser("run", parents=[quiet],
                        help="the whole benchmark: simulate, train, export, predict, evaluate, report")
-    s.add_argument("--profile", choices=["quick", "default", "full"], default="default")
+    s.add_argument("--profile", choices=["quick", "default", "full"], default="default",
+                   help="quick: a smoke run in minutes; default: compact models on 2 CPU cores (about 2 h); "
+                        "full: the references' settings (GPU)")
     s.add_argument("--models", help="comma-separated model names (default: all available)")
     s.add_argument("--out", help="run directory (default reports/<profile>)")
-    s.add_argument("--runtime", choices=["onnxruntime", "openvino"], default="onnxruntime")
+    s.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime", help="inference runtime (default onnxruntime)")
     s.add_argument("--jobs", type=_positive_int,
                    help="models trained/exported/predicted at once (default: the profile's, 2; 1 = one after the other)")
+    s.add_argument("--lidar-model", choices=["physics", "carla"], default=None,
+                   help="physics: the weather changes the point cloud (default); carla: CARLA's weather-blind LiDAR, "
+                        "the paper's protocol (the data sets, and so every stage after them, are made again)")
     s.set_defaults(func=cmd_run)
 
+
+def _add_report(sub, quiet) -> None:
     s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report")
-    s.add_argument("run_dir")
+    s.add_argument("run_dir", help="the run folder (reports/NAME)")
+    s.add_argument("--sample", metavar="DIR",
+                   help="then copy the report, tables/*.csv and figures into DIR (the repository's reports/sample)")
     s.set_defaults(func=cmd_report)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="sotif-bench", description=__doc__.splitlines()[0])
+    p.add_argument("--version", action="version", version=f"sotif-bench {_version()}")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or progress lines")
+    # --quiet also after the subcommand (``sotif-bench evaluate --quiet ...``)
+    quiet = argparse.ArgumentParser(add_help=False)
+    quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS,
+                       help="no progress bars or progress lines")
+    sub = p.add_subparsers(dest="command", required=True)
+    _add_simulate(sub, quiet)
+    _add_train(sub, quiet)
+    _add_export(sub, quiet)
+    _add_predict(sub, quiet)
+    _add_evaluate(sub, quiet)
+    _add_run(sub, quiet)
+    _add_report(sub, quiet)
     return p
 
 
@@ -206,6 +285,19 @@ def _bad_input(e: Exception) -> bool:
             or isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS))
 
 
+def _close_bars() -> None:
+    """Close the progress bars a failed step left open: each bar's line ends there."""
+    from tqdm import tqdm
+    for bar in list(getattr(tqdm, "_instances", ())):
+        bar.close()
+
+
+def _message(text: str) -> None:
+    """An error or notice on stderr on its own line, never onto a progress bar."""
+    _close_bars()
+    print(text, file=sys.stderr, flush=True)
+
+
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
     from harness.malloc import keep_freed_memory
@@ -213,14 +305,15 @@ def main(argv=None) -> int:
     try:
         return args.func(args)
     except KeyboardInterrupt:
-        print(f"sotif-bench {args.command}: interrupted; run the same command again to resume", file=sys.stderr)
+        _message(f"sotif-bench {args.command}: interrupted; run the same command again to resume")
         return 130
     except Exception as e:  # noqa: BLE001 - bad input exits 2, anything else is reported and exits 1
         if _bad_input(e):
-            print(f"sotif-bench {args.command}: error: {e}", file=sys.stderr)  # the file and the problem
+            _message(f"sotif-bench {args.command}: error: {e}")  # the file and the problem
             return BAD_INPUT
+        _close_bars()
         traceback.print_exc()
-        print(f"sotif-bench {args.command}: internal error (see the trace above)", file=sys.stderr)
+        _message(f"sotif-bench {args.command}: internal error (see the trace above)")
         return INTERNAL
 
 

@@ -348,17 +348,18 @@ def _result_files(out: Path) -> list[Path]:
             for p in sorted(d.glob("*.txt")) if p.stem.isdigit()]
 
 
-def predict(onnx_path, data, out, split: str = "test", runtime: str = "onnxruntime",
+def predict(onnx_path, data, out, split: str | Path = "test", runtime: str = "onnxruntime",
             progress: bool = True, threads: int | None = None) -> dict:
-    """Run a split through an ONNX detector; write ``out/<id>.txt`` (+ ``rois/``, ``rcnn/``)
+    """Run a split (a name in ``data/ImageSets``, or an ImageSets file) through an ONNX detector;
+    write ``out/<id>.txt`` (+ ``rois/``, ``rcnn/``)
     and ``out/predict.json`` (latency p50/p90, frames/s). Resumes an interrupted run of the same
     model, runtime, split and data set (``out/.progress.json``); results of another one are
     replaced, and result files no earlier ``predict`` recorded are refused, not reused. A second
     ``predict`` into the same folder while this one runs is refused (``out/.lock``)."""
     data, out = Path(data), Path(out)
     det = OnnxDetector(onnx_path, runtime=runtime, threads=threads)
-    ids = read_image_set(data / "ImageSets" / f"{split}.txt")
-    stamp = {"onnx_sha256": det.info.sha256, "runtime": runtime, "split": split, "data": _inputs_digest(data, ids)}
+    ids = read_image_set(split if isinstance(split, Path) else data / "ImageSets" / f"{split}.txt")
+    stamp = {"onnx_sha256": det.info.sha256, "runtime": runtime, "split": str(split), "data": _inputs_digest(data, ids)}
     _refuse_unrecorded_results(out)  # before the lock file: a refused folder stays as it was
     out.mkdir(parents=True, exist_ok=True)
     with folder_lock(out, "predict"):

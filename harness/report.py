@@ -22,10 +22,61 @@ from harness.kitti import atomic_write_bytes, atomic_write_text
 
 TEMPLATES = Path(__file__).parent / "templates"
 
+SMOKE_BANNER = ("Smoke run: numbers meaningless.",  # (heading, text) on a quick-profile report
+                "The quick profile trains tiny models for a few epochs on a few frames to check that the pipeline "
+                "runs end to end; `make run` (the default profile) gives results.")
+
+HOW_TO_READ = {  # one sentence opening each section: how to read it
+    "models": "Each row is one detector: compare the SOTIF columns (higher AP and more presets passed are "
+              "better, lower latency is cheaper); the val column shows how well each one trained.",
+    "main": "Read a row to compare the models in one weather and a column to see how one model's AP falls "
+            "from the clear presets to rain; overlapping intervals mark differences the test set cannot "
+            "separate.",
+    "paper": "These are the figures the source study and KITTI tables report; on the SOTIF set KITTI's filters"
+             " drop most of the far, small cars, so compare them with published figures, not across weathers.",
+    "sotif": "Look for FAIL cells: each marks a weather in which the model would have found the slow car too "
+             "late, or never, for the ego to brake.",
+    "robustness": "1.0 means as good as in clear weather and less means worse; mRR condenses a model's rain and wet"
+                  " presets into one such number.",
+    "detail": "Check the cars columns before trusting a small AP: an AP over few cars is capped and noisy.",
+    "runtime": "Fewer milliseconds is faster; an ORT speed-up above 1 means onnxruntime beats torch eager, and "
+               "the agreement columns should read 1.00 (all frames the same boxes) with tiny score differences.",
+    "data": "Fewer points and a shorter mean range show how much a preset took from the sensor before any "
+            "detector ran.",
+    "stages": "Use it to see where the run's time went.",
+}
+
+
+# Column headers as the reader sees them (the CSV and JSON tables keep the short machine names)
+COLUMN_NAMES = {
+    "n_frames": "frames", "n_car": "cars", "ap3d": "AP 3D", "ap3d_lo": "AP 3D 95% low", "ap3d_hi": "AP 3D 95% high",
+    "ap_bev": "AP BEV", "ap3d_0.5": "AP 3D @0.5", "kitti_mod_3d": "KITTI mod 3D", "kitti_mod_bev": "KITTI mod BEV",
+    **{f"ap3d_{b}m": f"AP 3D {b} m" for b in tables.DISTANCE_BINS},
+    "n_gt_kitti_mod": "cars KITTI mod", **{f"n_gt_{b}m": f"cars {b} m" for b in tables.DISTANCE_BINS},
+    "recall@0.5": "recall @0.5 %", "recall@0.7": "recall @0.7 %",
+    **{f"{s}@{t}": f"{s.replace('rcnn', 'RCNN').replace('roi', 'RoI')} @{t}"
+       for s in ("roi", "rcnn") for t in ("0.3", "0.5", "0.7")},
+    "clean_ap3d": "clean AP 3D", "n_corrupt_presets": "rain/wet presets", "worst_preset": "worst preset",
+    "worst_rel": "worst relative AP", "two_stage": "two-stage", "ort_p50_ms": "ORT p50 ms", "ort_p90_ms": "ORT p90 ms",
+    "fps": "frames/s", "predict_p50_ms": "ORT p50 ms in prediction", "size_mb": "ONNX MB", "params_m": "params (M)",
+    "peak_memory_mb": "peak MB", "torch_p50_ms": "torch p50 ms", "ort_speedup": "ORT speed-up",
+    "same_boxes": "same boxes as torch", "max_score_diff": "max score diff", "train_s": "train s",
+    "ov_p50_ms": "OpenVINO p50 ms", "ov_same_boxes": "OpenVINO same boxes", "ov_error": "OpenVINO error",
+    "n_test": "test frames", "n_val": "val frames", "n_points_mean": "points mean", "n_points_min": "points min",
+    "n_points_max": "points max", "mean_range_m_mean": "mean range m", "max_range_m_mean": "max range m",
+    "ground_share_mean": "ground share", "rain_rate_mmh": "rain mm/h", "fog_density": "fog density",
+    "time_of_day": "time of day", "precipitation_class": "precipitation",
+}
+
+
+def readable(df: pd.DataFrame) -> pd.DataFrame:
+    """``df`` with the column headers a reader sees (model names and other columns as they are)."""
+    return df.rename(columns=COLUMN_NAMES)
+
 
 @dataclass
 class Section:
-    """One block of the report: a heading, a sentence saying what it shows, tables and figures."""
+    """One block of the report: a heading, how to read it, what it shows, tables and figures."""
 
     key: str
     title: str
@@ -34,6 +85,10 @@ class Section:
     figures: list  # figure names (keys of the rendered figure dict)
     details: bool = False  # long tables folded away in the HTML
     figures_first: bool = False
+
+    @property
+    def read(self) -> str:
+        return HOW_TO_READ[self.key]
 
 
 # ----------------------------------------------------------------------------- figures
@@ -103,8 +158,9 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
     return [
         Section("main", "Headline AP per weather preset",
                 "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% bootstrap intervals "
-                "over frames (DESIGN.md: the SOTIF targets are far and small, so KITTI's moderate/hard filters "
-                "would ignore most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"], figures_first=True),
+                "over frames (the SOTIF targets are far and small, so KITTI's moderate/hard filters would ignore "
+                "most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"],
+                figures_first=True),
         Section("paper", "KITTI protocol (the paper's tables)",
                 "AP11 and AP40 at IoU 0.7 for 2D bbox, BEV, 3D and AOS with KITTI's easy/moderate/hard filters; "
                 "recall at the proposals (RoI) and refined boxes (RCNN) for two-stage models.",
@@ -113,20 +169,19 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 f"First detection of the slow car in the ego lane after the fast car's lane change (BEV IoU >= "
                 f"{c['iou_bev_min']}, score >= the model's F1-optimal threshold on the val split). Each cell: verdict, "
                 "the gap from the ego's front bumper to its rear face left at that moment if the ego had kept its "
-                "closing speed dv from the "
-                "lane change (the simulated ego brakes on ground truth), vs the stopping distance "
-                f"dv*{c['t_react_s']:g} s + dv^2/(2*{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m, "
+                "closing speed dv from the lane change (the simulated ego brakes on ground truth), vs the stopping "
+                f"distance dv*{c['t_react_s']:g} s + dv^2/(2*{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m, "
                 "and the time after the lane change.", [("", t["sotif_matrix"], 1)], []),
         Section("robustness", "Robustness",
                 "AP relative to each model's clean value (mean of ClearNoon and ClearSunset); mRR = mean relative "
                 "AP over the rain and wet presets (Robo3D); headline AP by time of day and precipitation class.",
                 [("Summary", t["robustness"], 2), ("AP relative to clean, per weather", t["relative_ap"], 2),
                  ("By time of day (AP40 3D @0.7)", _group_matrix(t["time_of_day"], "time_of_day"), 1),
-                 ("By precipitation class (AP40 3D @0.7)", _group_matrix(t["precipitation_class"], "precipitation_class"), 1)],
-                []),
+                 ("By precipitation class (AP40 3D @0.7)", _group_matrix(t["precipitation_class"],
+                                                                         "precipitation_class"), 1)], []),
         Section("detail", "Per weather and model: all numbers",
                 "Headline 3D and BEV AP, 95% interval, KITTI moderate AP40, AP per distance bin and RCNN recall. "
-                "n_gt columns: the Car boxes behind an AP; KITTI's AP40 over n boxes is at most (n - 1) / 40 "
+                "Cars columns: the Car boxes behind an AP; KITTI's AP40 over n boxes is at most (n - 1) / 40 "
                 "(it samples its recall positions among the matches), so 2 boxes cap it at 2.5.",
                 [("", t["weather_detail"], 1)], ["ap_distance", "pr_curves"], details=True),
         Section("runtime", "Runtime",
@@ -135,7 +190,8 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "several), ONNX size, parameters, peak resident memory, torch eager vs onnxruntime (speed-up, share "
                 "of frames with the same boxes, largest score difference).",
                 [("", t["runtime"], 2)], ["ap_latency"]),
-        Section("data", "Data", "The SOTIF test data per weather preset and one scene per preset.",
+        Section("data", "Data",
+                "The SOTIF test data per weather preset and one scene per preset.",
                 [("", t["data_by_weather"], 1),
                  ("What the weather did to the LiDAR: returns on the slow car (within 65 m) and their share of "
                   "ClearNoon's on the same scenario steps, next to the two-way transmission T^2 the Marshall-Palmer "
@@ -143,7 +199,9 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                   "when T^2 pushes it under the sensor's threshold), returns smeared around the car, and phantom "
                   "returns in the air within 30 m (raindrops, spray, sunlight) per frame.", t["lidar_fidelity"], 2)],
                 ["data", "bev"]),
-        Section("stages", "Pipeline stages", "Seconds per stage, as each job recorded it (stages of parallel model jobs overlap, so they add up to more than the wall time).", [("", t["stages"], 1)], []),
+        Section("stages", "Pipeline stages",
+                "Seconds per stage, as each job recorded it (stages of parallel model jobs overlap, so they add up "
+                "to more than the wall time).", [("", t["stages"], 1)], []),
     ]
 
 
@@ -154,16 +212,18 @@ def _overview(run: tables.Run) -> dict:
                "uses_camera": bool(m.get("uses_camera"))} for n, m in s["models"].items()]
     frames = {k: data.get(f"n_{k}_frames") for k in ("test", "val", "train")}
     total = sum(v for v in (s.get("stage_seconds") or {}).values() if isinstance(v, (int, float)))
-    return {"profile": s.get("profile", "?"), "created": s.get("created", "?"), "models": models, "frames": frames,
-            "total_seconds": total or None, "wall_seconds": s.get("wall_seconds")}
+    return {"profile": s.get("profile", "?"), "smoke": SMOKE_BANNER if s.get("profile") == "quick" else None,
+            "created": s.get("created", "?"), "models": models, "frames": frames, "total_seconds": total or None,
+            "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"]}
 
 
 def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
     if df.empty:
         return Markup("<p class='empty'>(not available in this run)</p>")
-    cells = df.astype(object).map(lambda v: tables.display_cell(v, decimals))  # as in report.md
-    html = cells.to_html(index=False, border=0, classes="tbl")
-    return Markup(html.replace("<td>FAIL", '<td class="fail">FAIL').replace("<td>pass", '<td class="pass">pass'))
+    cells = readable(df).astype(object).map(lambda v: tables.display_cell(v, decimals))  # as in report.md
+    html = cells.to_html(index=False, border=0, classes="tbl")  # in a box that scrolls when the table is wider
+    html = html.replace("<td>FAIL", '<td class="fail">FAIL').replace("<td>pass", '<td class="pass">pass')
+    return Markup(f'<div class="tablebox">{html}</div>')
 
 
 def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, str]:
@@ -174,7 +234,8 @@ def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, 
            "models_table": t["overview"]}
     env_md = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=False,
                          keep_trailing_newline=True)
-    md = env_md.get_template("report.md.j2").render(**ctx, images=md_links, md=tables.to_markdown)
+    md = env_md.get_template("report.md.j2").render(**ctx, images=md_links,
+                                                    md=lambda df, digits: tables.to_markdown(readable(df), digits))
     md = re.sub(r"\n{3,}", "\n\n", md)
     env_html = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=True)
     uris = {k: "data:image/png;base64," + base64.b64encode(v[1]).decode("ascii") for k, v in figs.items()}

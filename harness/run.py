@@ -53,8 +53,9 @@ PROFILES = {
     "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1),
 }
 
-# Minutes of each model's jobs in the README's sample run (its stage table's totals): the job pool
-# starts the longest first, so that the jobs end together, and the ETA a run prints scales them.
+# Minutes of each model's jobs in the sample run (docs/performance.md, its stage table's totals): the
+# job pool starts the longest first, so that the jobs end together, and the ETA a run prints scales
+# them by the share of each job still to do.
 _SAMPLE_MINUTES = {"mvx_net": 47, "pv_rcnn": 39, "second": 28, "dv_second": 28, "pointpillars": 26, "parta2": 25,
                    "point_rcnn": 24}
 
@@ -93,7 +94,19 @@ class Stages:
         info = fn() or {}
         info = {**info, "seconds": round(time.perf_counter() - t0, 3), "finished": round(time.time(), 3)}
         atomic_write_text(self.dir / f"{name}.json", json.dumps({"key": key, "info": info}, indent=1, default=str))
+        self._say(f"[done] {name} in {info['seconds']:.0f} s")
         return info
+
+    def epoch_line(self, model: str):
+        """A training's per-epoch progress line with its ETA from the epochs left, where no progress bar
+        shows it (a job process beside another); None where the bar does."""
+        if not self.progress or self.bars:
+            return None
+
+        def say(done: int, epochs: int, per_epoch: float) -> None:
+            self._say(f"train {model}: epoch {done}/{epochs}, {per_epoch:.0f} s per epoch, "
+                      f"ETA {per_epoch * (epochs - done):.0f} s")
+        return say
 
     def _say(self, msg: str) -> None:
         if self.progress:
@@ -126,7 +139,7 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, trai
                        lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt_dir,
                                                         profile=cfg.model_profile, epochs=cfg.epochs,
                                                         device=cfg.device, seed=cfg.seed,
-                                                        progress=stages.bars))},
+                                                        progress=stages.bars, on_epoch=stages.epoch_line(name)))},
                        outputs=[ckpt])
     onnx_path = run_dir / "models" / f"{name}.onnx"
     stages.run(f"export_{name}", {"checkpoint": _file_digest(ckpt)},
@@ -260,6 +273,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
     say = (lambda msg: print(msg, flush=True)) if progress else (lambda msg: None)
     jobs = max(1, min(cfg.jobs, len(names)))
     order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(n, 10)) if jobs > 1 else list(names)
+    minutes = {n: _SAMPLE_MINUTES.get(n, 10) * _work_left(cfg, run_dir, n) for n in names}
     done: dict[str, tuple[dict, dict]] = {}
     starts: dict[str, float] = {}  # a job starts when a slot frees: the pool takes them in order
     ends: dict[str, float] = {}
@@ -274,7 +288,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
         now = time.perf_counter()
         ends[name] = now
         start_next(now)
-        left = _eta_seconds(order, starts, ends, now, jobs) if len(done) < len(names) else None
+        left = _eta_seconds(order, minutes, starts, ends, now, jobs) if len(done) < len(names) else None
         eta = f", ETA {left:.0f} s" if left is not None else ""
         say(f"== {name} done ({len(done)}/{len(names)} models, elapsed {now - t0:.0f} s{eta})")
 
@@ -309,14 +323,14 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
     return done
 
 
-def _eta_seconds(order: list[str], starts: dict[str, float], ends: dict[str, float], now: float,
-                 jobs: int) -> float:
+def _eta_seconds(order: list[str], minutes: dict[str, float], starts: dict[str, float], ends: dict[str, float],
+                 now: float, jobs: int) -> float:
     """Seconds until the last of ``order``'s model jobs ends: each job is expected to take its
-    ``_SAMPLE_MINUTES`` scaled by how long the finished ones took against theirs (jobs of under a
-    minute, resumed from a previous run, do not count), the running ones less what they have run,
-    and the queued ones go to whichever of the ``jobs`` slots frees first."""
-    minutes = {n: _SAMPLE_MINUTES.get(n, 10) for n in order}
-    timed = [n for n in ends if ends[n] - starts[n] >= 60]
+    ``minutes`` (the work it has left, in sample-run minutes) scaled by how long the finished ones
+    took against theirs (jobs expected to take under a minute, resumed near their end, do not
+    count), the running ones less what they have run, and the queued ones go to whichever of the
+    ``jobs`` slots frees first."""
+    timed = [n for n in ends if minutes[n] >= 1]
     per_minute = (sum(ends[n] - starts[n] for n in timed) / sum(minutes[n] for n in timed)) if timed else 60.0
     running = [n for n in order if n in starts and n not in ends]
     free = [max(0.0, per_minute * minutes[n] - (now - starts[n])) for n in running]
@@ -326,6 +340,21 @@ def _eta_seconds(order: list[str], starts: dict[str, float], ends: dict[str, flo
         if n not in starts:
             heapq.heappush(free, heapq.heappop(free) + per_minute * minutes[n])
     return max(free)
+
+
+def _work_left(cfg: RunConfig, run_dir: Path, name: str) -> float:
+    """The share of a model's job still to do (0..1), from the epochs its checkpoint holds and the test
+    frames already predicted: training is most of a job (about 85 % in the sample run), prediction
+    most of the rest."""
+    import torch
+    from harness.train import train_config
+    epochs = cfg.epochs or train_config(name, cfg.model_profile).epochs
+    ckpt = run_dir / "models" / name / "checkpoint.pt"
+    done = torch.load(ckpt, map_location="cpu", weights_only=False).get("epoch", 0) if ckpt.is_file() else 0
+    test = run_dir / "data" / "sotif" / "ImageSets" / "test.txt"
+    n_test = len(test.read_text().split()) if test.is_file() else 0
+    predicted = len(list((run_dir / "predictions" / name).glob("[0-9]*.txt")))
+    return 0.85 * max(0.0, 1 - done / epochs) + 0.15 * max(0.0, 1 - predicted / n_test) if n_test else 1.0
 
 
 def _gt_database(cfg: RunConfig, run_dir: Path, names: list[str]) -> None:

@@ -277,8 +277,10 @@ def _bar(s: _Session, model: str, profile: str, show: bool) -> tqdm:
                 disable=not show, unit="step")
 
 
-def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: int = 1) -> dict | None:
-    """The remaining epochs; rank 0 writes the checkpoint after each. Returns the last state."""
+def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: int = 1,
+         on_epoch=None) -> dict | None:
+    """The remaining epochs; rank 0 writes the checkpoint after each and calls
+    ``on_epoch(epochs done, epochs, mean seconds of this call's epochs)``. Returns the last state."""
     start, state = time.perf_counter(), None
     for epoch in range(s.done, s.tcfg.epochs):
         loss = _run_epoch(s.net, s.ds, s.optimizer, s.scheduler, s.tcfg, seed, epoch, bar, aug, s.database,
@@ -289,6 +291,8 @@ def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: 
                      "final_loss": loss, "train_seconds": s.spent + time.perf_counter() - start,
                      "workers": world}
             _atomic_save(state, s.path)
+            if on_epoch is not None:
+                on_epoch(epoch + 1, s.tcfg.epochs, (time.perf_counter() - start) / (epoch + 1 - s.done))
     return state
 
 
@@ -344,7 +348,7 @@ def _fit_data_parallel(s: _Session, workers: int, args: tuple, progress: bool) -
 
 def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: int | None = None,
           device: str = "cpu", seed: int = 0, progress: bool = True, aug: AugmentConfig = AugmentConfig(),
-          workers: int = 1) -> Path:
+          workers: int = 1, on_epoch=None) -> Path:
     """Train ``model`` on ``<data>/ImageSets/train.txt``; returns ``<out>/checkpoint.pt``.
     LiDAR-only models get ground-truth sampling (``aug.gt_sampling``, database cached in
     ``<data>/gt_database``); camera models do not (pasted objects are not in the image).
@@ -356,7 +360,8 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     (no batch axis), so the step is the one a single process takes, to rounding, on the same
     frames; the augmentation draws are per worker, and BatchNorm's running statistics are the
     workers' weighted mean. On 2 cores, 2 workers train PointPillars 1.33x as fast as one process
-    with 2 threads, whose convolutions on one frame leave the second core half idle (README).
+    with 2 threads, whose convolutions on one frame leave the second core half idle (docs/performance.md).
+    ``on_epoch`` (one process only) is called after each epoch's checkpoint, as in ``_fit``.
     """
     data, out = Path(data), Path(out)
     batch_size = train_config(model, profile).batch_size
@@ -374,7 +379,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
             state = _fit_data_parallel(s, workers, (model, data, out, profile, epochs, seed, aug), progress)
         else:
             with _bar(s, model, profile, progress) as bar:
-                state = _fit(s, seed, aug, bar)
+                state = _fit(s, seed, aug, bar, on_epoch=on_epoch)
         if state is None and s.path.is_file():  # trained before; validated unless stopped just before it
             state = torch.load(s.path, map_location=device, weights_only=False)
             state = None if "val_ap" in state else state

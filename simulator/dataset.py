@@ -4,6 +4,8 @@ Layout (DESIGN.md): <out>/training/{velodyne,image_2,calib,label_2}/NNNNNN.*,
 <out>/ImageSets/{train,val,test}.txt, <out>/meta/frames.csv, <out>/meta/dataset.json.
 Each frame also leaves meta/frames/NNNNNN.json (its meta row and file hashes); a re-run
 skips frames whose record, config and file hashes match (resume). dataset.json is last.
+The test frames also appear in the views of ``simulator.toolkit_views`` (symlinks) for
+OpenPCDet's and MMDetection3D's stock KITTI tools.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from simulator.labels import LabelConfig
 from simulator.lidar import LidarSpec, carla_spec
 from simulator.road import RoadConfig
 from simulator.scenario import SotifConfig, TrainConfig
+from simulator.toolkit_views import write_views
 from simulator.weather import DRY_PRESETS, WEATHER_PRESETS
 
 GENERATOR_VERSION = "1.4"  # bump whenever the same seed gives other bytes
@@ -182,6 +185,7 @@ def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None
     df = pd.DataFrame(rows, columns=list(ROW_COLUMNS))
     written = [kitti.write_image_set(root / "ImageSets" / f"{split}.txt",
                                      df.loc[df["split"] == split, "frame_id"].tolist()) for split in ("train", "val", "test")]
+    write_views(root, df.loc[df["split"] == "test", "frame_id"].tolist())  # for OpenPCDet / MMDetection3D
     written.append(kitti.write_frames_meta(root / "meta" / "frames.csv", df))
     files = {rel: h for r in records for rel, h in r["files"].items()}
     files.update({str(p.relative_to(root)): sha256(p) for p in written})

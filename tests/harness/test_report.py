@@ -141,3 +141,25 @@ def test_bad_results_json_names_the_file_and_writes_nothing(tmp_path, content, m
     with pytest.raises(KittiError, match=f"results.json: {message}"):
         report.render(tmp_path)
     assert not (tmp_path / "index.html").exists() and not (tmp_path / "tables").exists()
+
+
+def test_report_reads_on_its_own(rendered):
+    """No file outside the report is cited, headers are words, each section says how to read it, and a
+    quick run carries the smoke-run banner."""
+    run_dir, html = rendered[0], rendered[1].decode("utf-8")
+    md = (run_dir / "report.md").read_text()
+    for text in (html, md):
+        assert "DESIGN.md" not in text and "README" not in text
+        assert "Smoke run: numbers meaningless." in text
+    headers = re.findall(r"<th>([^<]*)</th>", html)
+    assert headers and not [h for h in headers if "_" in h]  # the fake run's model names have no underscore
+    assert html.count('<p class="read"><b>How to read:</b>') == html.count("<h2>") == md.count("\n## ")
+    assert html.count('<div class="tablebox"><table') == html.count("<table")
+
+
+def test_only_a_quick_run_has_the_banner(tmp_path):
+    root = make_run(tmp_path)
+    doc = json.loads((root / "results.json").read_text())
+    kitti.atomic_write_text(root / "results.json", json.dumps({**doc, "profile": "default"}))
+    report.render(root)
+    assert "Smoke run" not in (root / "index.html").read_text() and "Smoke run" not in (root / "report.md").read_text()

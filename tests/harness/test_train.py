@@ -11,7 +11,10 @@ from models import zoo
 
 def test_train_writes_checkpoint_and_resumes(tmp_path, capsys):
     data = write_synthetic_dataset(tmp_path / "data", frames=5, seed=0, val=1)
-    ckpt = train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=2, seed=0, progress=True)
+    epochs = []  # the run's progress callback: epochs done, epochs, mean seconds per epoch
+    ckpt = train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=2, seed=0, progress=True,
+                 on_epoch=lambda done, total, seconds: epochs.append((done, total, seconds > 0)))
+    assert epochs == [(1, 2, True), (2, 2, True)]
     state = torch.load(ckpt, weights_only=False)
     assert state["model"] == "pointpillars" and state["epoch"] == 2 and state["profile"] == "tiny"
     assert state["config"]["pfn_channels"] == zoo.config("pointpillars", "tiny").pfn_channels

@@ -1,0 +1,82 @@
+"""The command line as a user meets it: version, help, option spellings, messages."""
+import argparse
+import json
+
+import pytest
+from tqdm import tqdm
+
+from harness import cli
+from harness.cli import build_parser, main
+from harness.kitti import write_image_set
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0 and capsys.readouterr().out.startswith("sotif-bench ")
+
+
+def _options(parser: argparse.ArgumentParser):
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield from ((f"{name} {opt}", help_) for opt, help_ in _options(sub))
+        elif not isinstance(action, (argparse._HelpAction, argparse._VersionAction)):
+            yield "/".join(action.option_strings) or action.dest, action.help
+
+
+def test_every_option_has_a_help_text():
+    options = list(_options(build_parser()))
+    assert len(options) > 40 and [opt for opt, help_ in options if not help_] == []
+
+
+@pytest.mark.parametrize("argv", [["run", "--models", ""], ["run", "--models", " , "],
+                                  ["simulate", "--preset", "sotif", "--out", "x", "--weathers", ""]])
+def test_an_empty_list_is_an_error(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    assert main(argv) == 2
+    assert "is empty" in capsys.readouterr().err and list(tmp_path.iterdir()) == []
+
+
+def test_split_is_a_name_or_a_file_in_predict_and_evaluate(make_onnx, tmp_path, dataset):
+    onnx_path = make_onnx(tmp_path / "mine.onnx")
+    write_image_set(tmp_path / "two.txt", ["000001", "000003"])
+    write_image_set(dataset / "ImageSets" / "val.txt", ["000002"])
+    pred = tmp_path / "pred"
+    for split, frames in (("test", 6), (str(tmp_path / "two.txt"), 2)):
+        assert main(["--quiet", "predict", "--onnx", str(onnx_path), "--data", str(dataset), "--split", split,
+                     "--out", str(pred / split.replace("/", "_"))]) == 0
+        assert len(list((pred / split.replace("/", "_")).glob("*.txt"))) == frames
+    every = str(pred / "test")
+    for labels in (dataset, dataset / "training" / "label_2"):
+        for split, frames in (("val", 1), (str(tmp_path / "two.txt"), 2), (str(dataset / "ImageSets" / "test.txt"), 6)):
+            out = tmp_path / "results.json"
+            assert main(["--quiet", "evaluate", "--labels", str(labels), "--predictions", every, "--split", split,
+                         "--output", str(out)]) == 0
+            assert json.loads(out.read_text())["n_frames"] == frames
+    # with --onnx, --split names the frames to predict and evaluate; --data-split is its former spelling
+    for flag in ("--split", "--data-split"):
+        out = tmp_path / flag / "results.json"
+        assert main(["--quiet", "evaluate", "--onnx", str(onnx_path), "--data", str(dataset), flag, "val",
+                     "--output", str(out)]) == 0
+        assert json.loads(out.read_text())["n_frames"] == 1
+
+
+def test_an_unknown_split_names_both_readings(make_onnx, tmp_path, dataset, capsys):
+    onnx_path = make_onnx(tmp_path / "mine.onnx")
+    assert main(["--quiet", "predict", "--onnx", str(onnx_path), "--data", str(dataset), "--split", "tset",
+                 "--out", str(tmp_path / "p")]) == 2
+    err = capsys.readouterr().err
+    assert "--split tset: neither a split of" in err and "ImageSets/tset.txt" in err and "nor an ImageSets file" in err
+
+
+def test_an_error_lands_on_its_own_line_after_an_open_progress_bar(monkeypatch, capsys):
+    def fails(a):
+        bar = tqdm(total=10, desc="predict", file=__import__("sys").stderr)
+        bar.update(3)
+        raise ValueError("frame 000003: broken")
+    monkeypatch.setattr(cli, "cmd_report", fails)
+    assert main(["report", "somewhere"]) == 2
+    err = capsys.readouterr().err
+    assert err.endswith("\nsotif-bench report: error: frame 000003: broken\n")
+    assert "predict" in err and not tqdm._instances
