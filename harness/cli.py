@@ -19,6 +19,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 BAD_INPUT = 2
 INTERNAL = 1
+FORCE_HELP = "replace the output even when it is an input or a file of another kind (refused otherwise)"
 
 
 def _csv(text: str) -> list[str]:
@@ -58,7 +59,7 @@ def cmd_train(a) -> int:
     from harness.train import default_workers, train
     workers = a.workers or default_workers(a.model, a.profile, a.device)
     ckpt = train(a.model, Path(a.data), Path(a.out), profile=a.profile, epochs=a.epochs, device=a.device,
-                 seed=a.seed, progress=not a.quiet, workers=workers)
+                 seed=a.seed, progress=not a.quiet, workers=workers, force=a.force)
     print(f"checkpoint written to {ckpt}")
     return 0
 
@@ -68,7 +69,10 @@ def cmd_export(a) -> int:
     from models.zoo import MODEL_NAMES
     if a.model not in MODEL_NAMES:
         raise ValueError(f"unknown model {a.model!r}; expected one of {', '.join(MODEL_NAMES)}")
-    out = export_checkpoint(Path(a.checkpoint), _output_file(a.out), expected_model=a.model)
+    from harness.protect import foreign_onnx, refuse_overwrite
+    out = _output_file(a.out)
+    refuse_overwrite(out, "an ONNX model", {"--checkpoint": a.checkpoint}, foreign_onnx, a.force)
+    out = export_checkpoint(Path(a.checkpoint), out, expected_model=a.model)
     print(f"ONNX written to {out}")
     return 0
 
@@ -83,21 +87,26 @@ def cmd_predict(a) -> int:
 
 
 def cmd_evaluate(a) -> int:
-    from harness.evaluate import evaluate, format_table, write_results
+    from harness.evaluate import evaluate, format_table, label_dir, write_results
+    from harness.protect import foreign_results, refuse_overwrite
     labels, predictions, split = a.labels, a.predictions, a.split
     _output_file(a.output)
     if a.onnx:  # bring your own detector: predict on the data set, then evaluate
-        from harness.infer import predict
         if not a.data:
             raise ValueError("--onnx needs --data DIR (a KITTI data set)")
         data = Path(a.data)
         predictions = predictions or str(Path(a.output).parent / f"predictions_{Path(a.onnx).stem}")
-        predict(Path(a.onnx), data, Path(predictions), split=a.data_split, runtime=a.runtime, progress=not a.quiet)
         labels = labels or str(data / "training" / "label_2")
         split = split or str(data / "ImageSets" / f"{a.data_split}.txt")
         a.meta = a.meta or (str(data / "meta" / "frames.csv") if a.group_by else None)
     if not labels or not predictions:
         raise ValueError("evaluate needs --labels and --predictions (or --onnx with --data)")
+    inputs = {"--labels": label_dir(labels), "--predictions": predictions, "--split": split, "--meta": a.meta,
+              "--onnx": a.onnx}
+    refuse_overwrite(a.output, "results JSON", inputs, foreign_results, a.force)
+    if a.onnx:
+        from harness.infer import predict
+        predict(Path(a.onnx), data, Path(predictions), split=a.data_split, runtime=a.runtime, progress=not a.quiet)
     result = evaluate(labels, predictions, split=split, group_by=a.group_by, meta=a.meta,
                       n_bootstrap=a.bootstrap, seed=a.seed)
     write_results(a.output, result)
@@ -144,6 +153,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", required=True)
     s.add_argument("--data", required=True)
     s.add_argument("--out", required=True)
+    s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.add_argument("--profile", choices=["tiny", "compact", "kitti"], default="compact")
     s.add_argument("--epochs", type=int)
     s.add_argument("--device", choices=["cpu", "cuda"], default="cpu")
@@ -157,6 +167,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--model", required=True)
     s.add_argument("--checkpoint", required=True)
     s.add_argument("--out", required=True)
+    s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.set_defaults(func=cmd_export)
 
     s = sub.add_parser("predict", parents=[quiet], help="run an ONNX detector on a data set split, write KITTI results")
@@ -174,6 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--group-by", help="a column of meta/frames.csv, e.g. weather")
     s.add_argument("--meta", help="meta/frames.csv")
     s.add_argument("--output", required=True, help="results.json")
+    s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.add_argument("--onnx", help="bring your own detector: predict with this ONNX file first")
     s.add_argument("--data", help="with --onnx: the KITTI data set to run on")
     s.add_argument("--data-split", default="test", help="with --onnx: the split to run (default test)")

@@ -34,6 +34,10 @@ class ContractError(ValueError):
 
     def __init__(self, path, problem: str):
         super().__init__(f"{path}: {problem}")
+        self.path, self.problem = Path(path), problem
+
+    def __reduce__(self):  # pickled whole (a job process of `run` raises it in the run's process)
+        return type(self), (self.path, self.problem)
 
 
 @dataclass
