@@ -193,7 +193,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
     data = run_dir / "data" / "sotif"
     return {"architecture": info.architecture, "two_stage": info.two_stage, "uses_camera": info.uses_camera,
             "onnx": f"models/{name}.onnx", "size_mb": onnx_path.stat().st_size / 2**20, "params": ck["params"],
-            "op_histogram": info.op_histogram,
+            "op_histogram": info.op_histogram, "provenance": info.provenance,
             # the checkpoint's own training time (summed over resumed sessions), else the stage's
             "train": {"seconds": ck["train_seconds"] or tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"],
                       "val_ap": ck["val_ap"]},
