@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib
 import pickle
+import re
 from pathlib import Path
 
 import torch
@@ -77,9 +78,10 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError as exc:
-        why = next((ln.strip() for ln in str(exc).splitlines() if "Unsupported" in ln), str(exc).splitlines()[0])
-        raise CheckpointError(f"{path}: refused: it holds more than tensors and plain data, which could run code "
-                              f"when loaded ({why[:200]})") from None
+        found = re.search(r"GLOBAL (\S+)", str(exc)) or re.search(r"Unsupported [^\n]{1,80}", str(exc))
+        why = ("it refers to " + found.group(1) if found.groups() else found.group(0)) if found else "an unknown pickle"
+        raise CheckpointError(f"{path}: refused: it holds more than tensors and plain data ({why}), so loading it "
+                              "could run code") from None
     except Exception as exc:  # noqa: BLE001 - torch raises many types for a corrupt file
         raise CheckpointError(f"{path}: not a readable checkpoint ({str(exc).splitlines()[0][:200]})") from None
     if not isinstance(ckpt, dict):

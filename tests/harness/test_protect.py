@@ -32,7 +32,7 @@ def test_a_crafted_checkpoint_is_refused_by_export_and_by_a_resumed_train(tmp_pa
     out = tmp_path / "model.onnx"
     assert main(["--quiet", "export", "--model", "pointpillars", "--checkpoint", str(evil), "--out", str(out)]) == 2
     err = capsys.readouterr().err
-    assert f"{evil}: refused: it holds more than tensors and plain data" in err and "exec" in err
+    assert f"{evil}: refused: it holds more than tensors and plain data (it refers to exec), so loading it" in err
     assert not marker.exists() and not out.exists()
     # a training folder someone else prepared: the resumed training refuses its checkpoint
     data = write_synthetic_dataset(tmp_path / "data", frames=2, seed=3)
