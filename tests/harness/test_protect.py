@@ -80,8 +80,8 @@ def test_train_over_another_models_checkpoint_is_refused_naming_both(tmp_path, c
 
 def test_export_refuses_to_write_over_its_checkpoint_or_a_file_of_another_kind(tmp_path, capsys):
     ckpt = tmp_path / "c.pt"
-    torch.save({"model": "pointpillars", "profile": "tiny", "state_dict": zoo.build("pointpillars", "tiny").state_dict()},
-               ckpt)
+    weights = zoo.build("pointpillars", "tiny").state_dict()
+    torch.save({"model": "pointpillars", "profile": "tiny", "state_dict": weights}, ckpt)
     before = ckpt.read_bytes()
     export = ["--quiet", "export", "--model", "pointpillars", "--checkpoint", str(ckpt), "--out"]
     assert main(export + [str(ckpt)]) == 2

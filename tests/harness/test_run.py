@@ -13,7 +13,7 @@ import torch
 
 from dataclasses import replace
 
-from harness.run import RunConfig, resolve, run
+from harness.run import PROFILES, RunConfig, resolve, run
 
 TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2,
                  jobs=1)
@@ -89,7 +89,8 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     onnx_file = out / "models/pointpillars.onnx"
     onnx_file.write_bytes(onnx_file.read_bytes()[:1000])
     test_ids = read_image_set(out / "data/sotif/ImageSets/test.txt")
-    emptied, deleted = out / f"predictions/point_rcnn/{test_ids[0]}.txt", out / f"predictions/pointpillars/{test_ids[1]}.txt"
+    emptied = out / f"predictions/point_rcnn/{test_ids[0]}.txt"
+    deleted = out / f"predictions/pointpillars/{test_ids[1]}.txt"
     kept = {p: p.read_text() for p in (emptied, deleted)}
     emptied.write_text("")
     deleted.unlink()
@@ -112,9 +113,10 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
         (out / f"predictions/{name}/{test_ids[2]}.txt").unlink()
     with pytest.raises(KittiError, match=f"{scan}: size 1001 bytes is not a multiple of 16"):
         run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
-    monkeypatch.setitem(__import__("harness.run").run.PROFILES, "quick", TINY)
+    monkeypatch.setitem(PROFILES, "quick", TINY)  # the CLI's profile names: the tiny config behind one
     capsys.readouterr()
-    assert main(["--quiet", "run", "--profile", "quick", "--models", ",".join(two), "--out", str(out), "--jobs", "2"]) == 2
+    args = ["--quiet", "run", "--profile", "quick", "--models", ",".join(two), "--out", str(out), "--jobs", "2"]
+    assert main(args) == 2
     err = capsys.readouterr().err
     assert f"sotif-bench run: error: {scan}: size 1001 bytes is not a multiple of 16" in err and "Traceback" not in err
 
