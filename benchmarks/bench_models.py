@@ -69,7 +69,7 @@ def bench_model(name: str, args, train_root: Path, eval_root: Path, split: str) 
     workers = args.workers or default_workers(name, args.profile)  # data-parallel, one thread each
     ckpt = train(name, train_root, run, profile=args.profile, epochs=args.epochs.get(name), progress=True,
                  workers=workers)
-    meta = torch.load(ckpt, map_location="cpu", weights_only=False)
+    meta = torch.load(ckpt, map_location="cpu", weights_only=True)
     onnx_path = export_checkpoint(ckpt, args.out / "models" / f"{name}.onnx", expected_model=name)
     pred = predict(onnx_path, eval_root, args.out / "predictions" / name, split=split, progress=False, threads=1)
     res = evaluate(eval_root, args.out / "predictions" / name, split=eval_root / "ImageSets" / f"{split}.txt")

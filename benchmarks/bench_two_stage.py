@@ -83,7 +83,7 @@ def bench_model(name: str, data: Path, out: Path, epochs: int, frames: int) -> d
     run = out / name
     t0 = time.perf_counter()
     ckpt = train(name, data, run, profile="compact", epochs=epochs, progress=True)
-    meta = torch.load(ckpt, map_location="cpu", weights_only=False)
+    meta = torch.load(ckpt, map_location="cpu", weights_only=True)
     onnx_path = run / f"{name}.onnx"
     if not onnx_path.is_file() or onnx_path.stat().st_mtime < ckpt.stat().st_mtime:
         export_checkpoint(ckpt, onnx_path, expected_model=name)

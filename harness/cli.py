@@ -19,6 +19,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 BAD_INPUT = 2
 INTERNAL = 1
+FORCE_HELP = "replace the output even when it is an input or a file of another kind (refused otherwise)"
 
 
 def _csv(text: str) -> list[str]:
@@ -85,7 +86,7 @@ def cmd_train(a) -> int:
     from harness.train import default_workers, train
     workers = a.workers or default_workers(a.model, a.profile, a.device)
     ckpt = train(a.model, Path(a.data), Path(a.out), profile=a.profile, epochs=a.epochs, device=a.device,
-                 seed=a.seed, progress=not a.quiet, workers=workers)
+                 seed=a.seed, progress=not a.quiet, workers=workers, force=a.force)
     print(f"checkpoint written to {ckpt}")
     return 0
 
@@ -95,7 +96,10 @@ def cmd_export(a) -> int:
     from models.zoo import MODEL_NAMES
     if a.model not in MODEL_NAMES:
         raise ValueError(f"unknown model {a.model!r}; expected one of {', '.join(MODEL_NAMES)}")
-    out = export_checkpoint(Path(a.checkpoint), _output_file(a.out), expected_model=a.model)
+    from harness.protect import foreign_onnx, refuse_overwrite
+    out = _output_file(a.out)
+    refuse_overwrite(out, "an ONNX model", {"--checkpoint": a.checkpoint}, foreign_onnx, a.force)
+    out = export_checkpoint(Path(a.checkpoint), out, expected_model=a.model)
     print(f"ONNX written to {out}")
     return 0
 
@@ -110,17 +114,17 @@ def cmd_predict(a) -> int:
 
 
 def cmd_evaluate(a) -> int:
-    from harness.evaluate import evaluate, format_table, write_results
+    from harness.evaluate import evaluate, format_table, label_dir, write_results
+    from harness.protect import foreign_results, refuse_overwrite
     labels, predictions, split = a.labels, a.predictions, a.split or a.data_split  # --data-split: the old spelling
     _output_file(a.output)
+    data = None
     if a.onnx:  # bring your own detector: predict on the data set, then evaluate
-        from harness.infer import predict
         if not a.data:
             raise ValueError("--onnx needs --data DIR (a KITTI data set)")
         data = Path(a.data)
         split = _split(split or "test", data)
         predictions = predictions or str(Path(a.output).parent / f"predictions_{Path(a.onnx).stem}")
-        predict(Path(a.onnx), data, Path(predictions), split=split, runtime=a.runtime, progress=not a.quiet)
         labels = labels or str(data / "training" / "label_2")
         a.meta = a.meta or (str(data / "meta" / "frames.csv") if a.group_by else None)
     if not labels or not predictions:
@@ -129,6 +133,12 @@ def cmd_evaluate(a) -> int:
         root = _data_root(labels)
         split = _split(split, root) if isinstance(split, str) else split
         split = root / "ImageSets" / f"{split}.txt" if isinstance(split, str) else split
+    inputs = {"--labels": label_dir(labels), "--predictions": predictions, "--split": split, "--meta": a.meta,
+              "--onnx": a.onnx}
+    refuse_overwrite(a.output, "results JSON", inputs, foreign_results, a.force)
+    if a.onnx:
+        from harness.infer import predict
+        predict(Path(a.onnx), data, Path(predictions), split=split, runtime=a.runtime, progress=not a.quiet)
     result = evaluate(labels, predictions, split=split, group_by=a.group_by, meta=a.meta,
                       n_bootstrap=a.bootstrap, seed=a.seed)
     write_results(a.output, result)
@@ -187,6 +197,7 @@ def _add_train(sub, quiet) -> None:
     s.add_argument("--model", required=True, help="model name, e.g. pointpillars (see the README)")
     s.add_argument("--data", required=True, help="KITTI data set folder with ImageSets/train.txt")
     s.add_argument("--out", required=True, help="folder for checkpoint.pt (a training there resumes)")
+    s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.add_argument("--profile", choices=["tiny", "compact", "kitti"], default="compact",
                    help="model size: tiny (tests), compact (CPU, default), kitti (the references' settings, GPU)")
     s.add_argument("--epochs", type=int, help="epochs (default: the profile's schedule for the model)")
@@ -203,6 +214,7 @@ def _add_export(sub, quiet) -> None:
     s.add_argument("--model", required=True, help="the model name the checkpoint was trained as")
     s.add_argument("--checkpoint", required=True, help="checkpoint.pt written by train")
     s.add_argument("--out", required=True, help="the ONNX file to write")
+    s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.set_defaults(func=cmd_export)
 
 
@@ -224,6 +236,7 @@ def _add_evaluate(sub, quiet) -> None:
     s.add_argument("--group-by", help="a column of meta/frames.csv, e.g. weather")
     s.add_argument("--meta", help="with --group-by: the data set's meta/frames.csv")
     s.add_argument("--output", required=True, help="results.json to write")
+    s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.add_argument("--onnx", help="bring your own detector: predict with this ONNX file first")
     s.add_argument("--data", help="with --onnx: the KITTI data set to run on")
     s.add_argument("--data-split", help="the former spelling of --split with --onnx")

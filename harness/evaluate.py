@@ -24,6 +24,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -59,16 +60,50 @@ def frame_ids(labels: Path, split=None) -> list[str]:
 
 
 def load_folder(folder: Path, ids, with_score: bool) -> list[Labels]:
-    out = []
+    """The label files of ``ids`` in ``folder``: ground truth (checked) or, ``with_score``, results
+    (a result without scores scores 0, as in the reference; a folder of such files gets a note)."""
+    out, scoreless = [], 0
     for fid in ids:
         p = Path(folder) / f"{fid}.txt"
         if not p.is_file():
             raise KittiError(p, "file not found (every frame of the split needs one, empty if nothing was found)")
         labels = read_labels(p, with_score=None)
+        if not with_score:
+            check_ground_truth(p, labels)
         if with_score and labels.score is None:  # as the reference: a result without scores scores 0
+            scoreless += len(labels) > 0
             labels.score = np.zeros(len(labels))
         out.append(labels)
+    if scoreless and scoreless == sum(len(d) > 0 for d in out):
+        print(f"note: {folder}: no line of its files has a score (16th field), as label files do not: is it a "
+              "label folder (--labels and --predictions swapped)? Every box counts with score 0", file=sys.stderr)
     return out
+
+
+_GT_RULES = (  # (rule, test of a row, its values): objects but DontCare
+    ("box sizes (h w l) must be > 0", lambda lab: (lab.dimensions > 0).all(axis=1),
+     lambda lab, i: " ".join(f"{v:g}" for v in lab.dimensions[i])),
+    ("truncation must be in [0, 1]", lambda lab: (lab.truncated >= 0) & (lab.truncated <= 1),
+     lambda lab, i: f"{lab.truncated[i]:g}"),
+    ("occlusion must be 0, 1, 2 or 3", lambda lab: (lab.occluded >= 0) & (lab.occluded <= 3),
+     lambda lab, i: f"{lab.occluded[i]}"))
+
+
+def check_ground_truth(path: Path, labels: Labels) -> None:
+    """Refuse (KittiError naming the line) a label file that is no ground truth: lines with a score
+    (a result file: label and prediction folders swapped?), or an object other than DontCare with a
+    size <= 0, a truncation outside [0, 1] or an occlusion outside 0..3."""
+    if not len(labels):
+        return
+    lines = [no for no, line in enumerate(Path(path).read_text().splitlines(), start=1) if line.strip()]
+    if labels.score is not None:
+        raise KittiError(path, "has a score (16th field), as a prediction file does: is it a prediction folder "
+                               "(--labels and --predictions swapped)?", lines[0])
+    care = np.asarray(labels.name, dtype=str) != "DontCare"
+    for rule, ok, values in _GT_RULES:
+        bad = np.flatnonzero(care & ~ok(labels))
+        if len(bad):
+            raise KittiError(path, f"{rule}, got {values(labels, bad[0])}", lines[bad[0]])
 
 
 def recall_at_iou(gt: list[Labels], boxes: list[Labels], thresholds=RECALL_THRESHOLDS, frames=None) -> dict:

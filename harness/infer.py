@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import os
 import time
 from dataclasses import dataclass, field
@@ -25,8 +26,8 @@ REQUIRED_OUTPUTS = ("boxes", "scores")
 STAGE_OUTPUTS = ("rois", "roi_scores")
 STANDARD_DOMAINS = ("", "ai.onnx", "ai.onnx.ml")
 MIN_OPSET = 18
-REQUIRED_METADATA = ("sotif.contract", "sotif.architecture", "sotif.classes", "sotif.point_cloud_range",
-                     "sotif.data_hash", "sotif.config_hash")
+REQUIRED_METADATA = ("sotif.contract", "sotif.architecture", "sotif.classes", "sotif.point_cloud_range")
+PROVENANCE_METADATA = ("sotif.data_hash", "sotif.config_hash")  # optional: our exports write them, a user's may not
 
 
 class ContractError(ValueError):
@@ -34,6 +35,10 @@ class ContractError(ValueError):
 
     def __init__(self, path, problem: str):
         super().__init__(f"{path}: {problem}")
+        self.path, self.problem = Path(path), problem
+
+    def __reduce__(self):  # pickled whole (a job process of `run` raises it in the run's process)
+        return type(self), (self.path, self.problem)
 
 
 @dataclass
@@ -56,6 +61,11 @@ class ContractInfo:
     @property
     def architecture(self) -> str:
         return self.metadata.get("sotif.architecture", self.path.stem)
+
+    @property
+    def provenance(self) -> dict:
+        """The optional provenance keys the file carries (``data_hash``, ``config_hash``), without empty ones."""
+        return {k.removeprefix("sotif."): self.metadata[k] for k in PROVENANCE_METADATA if self.metadata.get(k)}
 
     def image_size(self) -> tuple[int, int] | None:
         """(H, W) the camera input expects, when fixed."""
@@ -211,15 +221,23 @@ def check_contract(path) -> ContractInfo:
     missing = [k for k in REQUIRED_METADATA if k not in meta]
     if missing:
         raise ContractError(path, f"metadata_props lack {', '.join(missing)} (the contract needs {', '.join(REQUIRED_METADATA)})")
-    try:
-        pc_range = [float(v) for v in json.loads(meta["sotif.point_cloud_range"])]
-        ok = len(pc_range) == 6 and all(lo < hi for lo, hi in zip(pc_range[:3], pc_range[3:]))
-    except (ValueError, TypeError):
-        ok = False
-    if not ok:
-        raise ContractError(path, "metadata 'sotif.point_cloud_range' must be a JSON list [x_min, y_min, z_min, "
-                                  f"x_max, y_max, z_max], got {meta['sotif.point_cloud_range']!r}")
+    if point_cloud_range(meta["sotif.point_cloud_range"]) is None:
+        raise ContractError(path, "metadata 'sotif.point_cloud_range' must be six numbers x_min, y_min, z_min, x_max, "
+                                  "y_max, z_max (a JSON list or comma-separated), each min below its max, got "
+                                  f"{meta['sotif.point_cloud_range']!r}")
     return ContractInfo(path, inputs, outputs, meta, sha256_file(path), dict(sorted(hist.items())))
+
+
+def point_cloud_range(text: str) -> list[float] | None:
+    """The six numbers of ``sotif.point_cloud_range``, a JSON list ("[0, -40, -3, 70.4, 40, 1]") or
+    comma-separated ("0,-40,-3,70.4,40,1"); None unless six finite numbers with each min below its max."""
+    try:
+        values = json.loads(text) if text.strip().startswith("[") else text.split(",")
+        pc_range = [float(v) for v in values]
+    except (ValueError, TypeError):
+        return None
+    ok = len(pc_range) == 6 and all(lo < hi for lo, hi in zip(pc_range[:3], pc_range[3:]))
+    return pc_range if ok and all(math.isfinite(v) for v in pc_range) else None
 
 
 class OnnxDetector:
@@ -436,7 +454,7 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
     summary = latency_summary(latencies) | {
         "n_frames": len(ids), "n_points_mean": float(np.mean([r["n_points"] for r in timed])) if timed else None,
         **stamp, "architecture": det.info.architecture, "two_stage": det.info.two_stage,
-        "uses_camera": det.info.uses_camera}
+        "uses_camera": det.info.uses_camera, "provenance": det.info.provenance}
     atomic_write_text(out / "latency_ms.csv", "frame_id,latency_ms\n"
                       + "".join(f"{r['frame_id']},{r['latency_ms']:.4f}\n" for r in timed))
     atomic_write_text(out / "predict.json", json.dumps(summary, indent=1))

@@ -37,6 +37,9 @@ class KittiError(ValueError):
         super().__init__(f"{where}: {problem}")
         self.path, self.line, self.problem = Path(path), line, problem
 
+    def __reduce__(self):  # pickled whole (a job process of `run` raises it in the run's process)
+        return type(self), (self.path, self.problem, self.line)
+
 
 # ----------------------------------------------------------------------------- atomic writes
 _UMASK = os.umask(0)

@@ -1,14 +1,14 @@
 """``sotif-bench run``: simulate -> train -> export -> predict -> evaluate -> report.
 
 Every stage writes its files and a record ``RUN/.stages/<stage>.json`` holding the hash of its
-inputs and config; a stage whose record matches is skipped, so a second run only redoes what
-changed, and an interrupted run resumes (each stage also resumes inside itself: the simulator
+inputs and config and of each file it wrote (``harness.stages``); a stage whose record matches and
+whose files are as it wrote them is skipped, so a second run only redoes what changed or was
+damaged, and an interrupted run resumes (each stage also resumes inside itself: the simulator
 per frame, training per epoch, prediction per frame).
 """
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import heapq
 import json
 import os
@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
+from harness.stages import Stages, file_digest
 
 RUN_SCHEMA = "sotif-bench/run/1"
 GROUP_COLUMNS = ("weather", "time_of_day", "precipitation_class")
@@ -60,59 +61,6 @@ _SAMPLE_MINUTES = {"mvx_net": 47, "pv_rcnn": 39, "second": 28, "dv_second": 28, 
                    "point_rcnn": 24}
 
 
-def _digest(obj) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
-
-
-def _file_digest(path: Path) -> str:
-    from harness.infer import sha256_file
-    return sha256_file(path)[:16] if path.is_file() else "missing"
-
-
-class Stages:
-    """Skip-if-current bookkeeping for the stages of one run directory."""
-
-    def __init__(self, run_dir: Path, progress: bool, bars: bool | None = None, prefix: str = ""):
-        self.dir = run_dir / ".stages"
-        self.progress = progress
-        self.bars = progress if bars is None else bars  # tqdm bars inside stages (off in parallel jobs)
-        self.prefix = prefix
-
-    def record(self, name: str) -> dict | None:
-        p = self.dir / f"{name}.json"
-        return json.loads(p.read_text()) if p.is_file() else None
-
-    def run(self, name: str, key, fn, outputs=()) -> dict:
-        """Run ``fn() -> dict`` unless the stage's record has the same key and its outputs exist."""
-        key = _digest(key)
-        rec = self.record(name)
-        if rec and rec.get("key") == key and all(Path(o).exists() for o in outputs):
-            self._say(f"[skip] {name} (up to date)")
-            return rec["info"]
-        self._say(f"[run ] {name}")
-        t0 = time.perf_counter()
-        info = fn() or {}
-        info = {**info, "seconds": round(time.perf_counter() - t0, 3), "finished": round(time.time(), 3)}
-        atomic_write_text(self.dir / f"{name}.json", json.dumps({"key": key, "info": info}, indent=1, default=str))
-        self._say(f"[done] {name} in {info['seconds']:.0f} s")
-        return info
-
-    def epoch_line(self, model: str):
-        """A training's per-epoch progress line with its ETA from the epochs left, where no progress bar
-        shows it (a job process beside another); None where the bar does."""
-        if not self.progress or self.bars:
-            return None
-
-        def say(done: int, epochs: int, per_epoch: float) -> None:
-            self._say(f"train {model}: epoch {done}/{epochs}, {per_epoch:.0f} s per epoch, "
-                      f"ETA {per_epoch * (epochs - done):.0f} s")
-        return say
-
-    def _say(self, msg: str) -> None:
-        if self.progress:
-            print(self.prefix + msg, flush=True)
-
-
 def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
     from simulator import generate
     frames = cfg.train_frames if preset == "train" else cfg.sotif_frames
@@ -123,7 +71,7 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
     stages.run(f"simulate_{preset}", key, lambda: {"out": str(generate(
         out, preset=preset, frames=frames, seed=seed, workers=cfg.workers, lidar_model=cfg.lidar_model,
         progress=stages.progress))}, outputs=[out / "meta" / "dataset.json"])
-    return _file_digest(out / "meta" / "dataset.json")
+    return file_digest(out / "meta" / "dataset.json")
 
 
 def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, train_hash: str) -> dict:
@@ -142,14 +90,14 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, trai
                                                         progress=stages.bars, on_epoch=stages.epoch_line(name)))},
                        outputs=[ckpt])
     onnx_path = run_dir / "models" / f"{name}.onnx"
-    stages.run(f"export_{name}", {"checkpoint": _file_digest(ckpt)},
+    stages.run(f"export_{name}", {"checkpoint": file_digest(ckpt)},
                lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=name))}, outputs=[onnx_path])
     return tinfo
 
 
 def _checkpoint_meta(ckpt: Path) -> dict:
-    import torch
-    state = torch.load(ckpt, map_location="cpu", weights_only=False)
+    from models.zoo import read_checkpoint
+    state = read_checkpoint(ckpt)
     params = sum(int(np.prod(v.shape)) for v in state["state_dict"].values() if hasattr(v, "shape")
                  and v.dtype.is_floating_point)
     return {"params": params, "epochs": state.get("epoch"), "final_loss": state.get("final_loss"),
@@ -163,15 +111,15 @@ def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, soti
     onnx_path = run_dir / "models" / f"{name}.onnx"
     data = run_dir / "data" / "sotif"
     pred = run_dir / "predictions" / name
-    key = {"onnx": _file_digest(onnx_path), "data": sotif_hash, "runtime": runtime}
+    key = {"onnx": file_digest(onnx_path), "data": sotif_hash, "runtime": runtime}
     stages.run(f"predict_{name}", key, lambda: {"summary": predict(onnx_path, data, pred, split="test", runtime=runtime,
                                                                    progress=stages.bars, threads=threads)},
-               outputs=[pred / "predict.json"])
+               outputs=[pred])
     if (data / "ImageSets" / "val.txt").stat().st_size:
         stages.run(f"predict_val_{name}", key, lambda: {"summary": predict(onnx_path, data, run_dir / "predictions_val" / name,
                                                                            split="val", runtime=runtime, progress=False,
                                                                            threads=threads)},
-                   outputs=[run_dir / "predictions_val" / name / "predict.json"])
+                   outputs=[run_dir / "predictions_val" / name])
     res_path = run_dir / "results" / f"{name}.json"
 
     def _evaluate():
@@ -179,7 +127,8 @@ def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, soti
                        meta=data / "meta" / "frames.csv", n_bootstrap=cfg.bootstrap, seed=cfg.seed)
         write_results(res_path, res)
         return {}
-    stages.run(f"evaluate_{name}", {**key, "bootstrap": cfg.bootstrap, "evaluator": EVALUATOR_VERSION}, _evaluate,
+    stages.run(f"evaluate_{name}", {**key, "bootstrap": cfg.bootstrap, "evaluator": EVALUATOR_VERSION,
+                                    "predictions": stages.outputs_digest(f"predict_{name}")}, _evaluate,
                outputs=[res_path])
     return json.loads((pred / "predict.json").read_text())
 
@@ -190,7 +139,7 @@ def _runtime_probe(stages: Stages, cfg: RunConfig, run_dir: Path, name: str) -> 
     onnx_path = run_dir / "models" / f"{name}.onnx"
     data = run_dir / "data" / "sotif"
     has_ov = importlib.util.find_spec("openvino") is not None
-    key = {"onnx": _file_digest(onnx_path), "frames": cfg.runtime_frames, "openvino": has_ov}
+    key = {"onnx": file_digest(onnx_path), "frames": cfg.runtime_frames, "openvino": has_ov}
     return stages.run(f"runtime_{name}", key,
                       lambda: {**compare_torch_onnx(run_dir / "models" / name / "checkpoint.pt", onnx_path, data,
                                                     n_frames=cfg.runtime_frames),
@@ -206,7 +155,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
     data = run_dir / "data" / "sotif"
     return {"architecture": info.architecture, "two_stage": info.two_stage, "uses_camera": info.uses_camera,
             "onnx": f"models/{name}.onnx", "size_mb": onnx_path.stat().st_size / 2**20, "params": ck["params"],
-            "op_histogram": info.op_histogram,
+            "op_histogram": info.op_histogram, "provenance": info.provenance,
             # the checkpoint's own training time (summed over resumed sessions), else the stage's
             "train": {"seconds": ck["train_seconds"] or tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"],
                       "val_ap": ck["val_ap"]},

@@ -292,6 +292,7 @@ def runtime_table(summary: dict) -> pd.DataFrame:
             ov = rt["openvino"]
             row.update(ov_p50_ms=_get(ov, "latency_ms_p50"), ov_same_boxes=_get(ov, "agreement", "same_boxes"),
                        ov_error=ov.get("error"))
+        row.update(m.get("provenance") or {})  # the ONNX file's data_hash / config_hash, when it carries them
         rows.append(row)
     return pd.DataFrame(rows)
 

@@ -92,13 +92,30 @@ def _resume(path: Path, net, optimizer, scheduler, ident: dict) -> tuple[int, fl
     absent / not matching)."""
     if not path.is_file():
         return 0, 0.0
-    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    ckpt = zoo.read_checkpoint(path)
     if any(ckpt.get(k) != v for k, v in ident.items()):
         return 0, 0.0  # another model, data set or config: start again
     net.load_state_dict(ckpt["state_dict"])
     optimizer.load_state_dict(ckpt["optimizer"])
     scheduler.load_state_dict(ckpt["scheduler"])
     return int(ckpt["epoch"]), float(ckpt.get("train_seconds") or 0.0)
+
+
+def _replaceable_checkpoint(path: Path, model: str, force: bool) -> None:
+    """Refuse a file at ``path`` that is not a checkpoint of ``model`` (another model's, or no
+    checkpoint that loads safely), unless ``force``: then it is removed unread."""
+    if not path.is_file():
+        return
+    try:
+        other = zoo.read_checkpoint(path).get("model")
+        found = None if other == model else f"is a checkpoint of {other!r}"
+    except zoo.CheckpointError as e:
+        found = str(e).removeprefix(f"{path}: ")
+    if found and not force:
+        raise ValueError(f"{path}: {found}; training {model!r} into {path.parent} would replace it "
+                         "(pass --force to replace it, or choose another --out)")
+    if found:
+        path.unlink()
 
 
 def _batches(n: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]:
@@ -339,7 +356,7 @@ def _fit_data_parallel(s: _Session, workers: int, args: tuple, progress: bool) -
                     p.terminate()
                     p.join()
         shutil.rmtree(tmp, ignore_errors=True)
-    state = torch.load(s.path, map_location="cpu", weights_only=False) if s.path.is_file() else {"epoch": 0}
+    state = zoo.read_checkpoint(s.path) if s.path.is_file() else {"epoch": 0}
     if state["epoch"] < s.tcfg.epochs:  # the workers were interrupted (SIGINT) and ended quietly
         raise KeyboardInterrupt(f"data-parallel training stopped after epoch {state['epoch']} of {s.tcfg.epochs}")
     s.net.load_state_dict(state["state_dict"])
@@ -348,8 +365,9 @@ def _fit_data_parallel(s: _Session, workers: int, args: tuple, progress: bool) -
 
 def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: int | None = None,
           device: str = "cpu", seed: int = 0, progress: bool = True, aug: AugmentConfig = AugmentConfig(),
-          workers: int = 1, on_epoch=None) -> Path:
-    """Train ``model`` on ``<data>/ImageSets/train.txt``; returns ``<out>/checkpoint.pt``.
+          workers: int = 1, on_epoch=None, force: bool = False) -> Path:
+    """Train ``model`` on ``<data>/ImageSets/train.txt``; returns ``<out>/checkpoint.pt``. A file
+    there that is not a checkpoint of ``model`` is refused, not replaced, unless ``force``.
     LiDAR-only models get ground-truth sampling (``aug.gt_sampling``, database cached in
     ``<data>/gt_database``); camera models do not (pasted objects are not in the image).
 
@@ -372,6 +390,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device 'cuda' asked for, but torch {torch.__version__} sees no CUDA device here; "
                          "train with --device cpu")
+    _replaceable_checkpoint(out / "checkpoint.pt", model, force)
     with torch.device(device):
         s = _session(model, data, out, profile, epochs, seed, aug)
         s.net.to(device)
@@ -381,7 +400,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
             with _bar(s, model, profile, progress) as bar:
                 state = _fit(s, seed, aug, bar, on_epoch=on_epoch)
         if state is None and s.path.is_file():  # trained before; validated unless stopped just before it
-            state = torch.load(s.path, map_location=device, weights_only=False)
+            state = zoo.read_checkpoint(s.path, map_location=device)
             state = None if "val_ap" in state else state
         if state is not None and has_split(data, "val"):
             # held-out frames of the training generator, kept with the checkpoint

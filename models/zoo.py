@@ -5,6 +5,8 @@
   detector module exposes ``CONFIGS: dict[str, Config]`` with keys "tiny", "compact", "kitti"
   and ``build(profile) -> Detector``.
 - ``available()``: names whose module imports.
+- ``read_checkpoint(path) -> dict``: a checkpoint's contents, loaded with ``weights_only=True``
+  (tensors and plain Python data only: a pickle that would run code is refused, never run).
 - ``load_checkpoint(path) -> (Detector, meta)``: rebuilds the model of a checkpoint written by
   ``harness.train.train`` (keys: model, profile, config, state_dict, epoch, optimizer,
   data_hash, config_hash) and loads its weights; ``meta`` is the checkpoint without the
@@ -13,6 +15,8 @@
 from __future__ import annotations
 
 import importlib
+import pickle
+import re
 from pathlib import Path
 
 import torch
@@ -64,16 +68,32 @@ def count_parameters(model: torch.nn.Module) -> int:
     return sum(p.numel() for p in model.parameters())
 
 
-def load_checkpoint(path) -> tuple[Detector, dict]:
-    """(model in eval mode, metadata) from a checkpoint file."""
+def read_checkpoint(path, map_location="cpu") -> dict:
+    """The contents of a checkpoint file: tensors and plain Python data (what ``harness.train``
+    stores), loaded with ``torch.load(weights_only=True)``. A file that holds anything else (a
+    pickle that would call a function, say) is refused without running any of it."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as exc:  # torch raises many types for a corrupt file
-        raise CheckpointError(f"{path}: not a readable checkpoint ({exc})") from exc
-    missing = {"model", "profile", "state_dict"} - set(ckpt) if isinstance(ckpt, dict) else {"all"}
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError as exc:
+        found = re.search(r"GLOBAL (\S+)", str(exc)) or re.search(r"Unsupported [^\n]{1,80}", str(exc))
+        why = ("it refers to " + found.group(1) if found.groups() else found.group(0)) if found else "an unknown pickle"
+        raise CheckpointError(f"{path}: refused: it holds more than tensors and plain data ({why}), so loading it "
+                              "could run code") from None
+    except Exception as exc:  # noqa: BLE001 - torch raises many types for a corrupt file
+        raise CheckpointError(f"{path}: not a readable checkpoint ({str(exc).splitlines()[0][:200]})") from None
+    if not isinstance(ckpt, dict):
+        raise CheckpointError(f"{path}: not a sotif-bench checkpoint (holds a {type(ckpt).__name__}, not a dict)")
+    return ckpt
+
+
+def load_checkpoint(path) -> tuple[Detector, dict]:
+    """(model in eval mode, metadata) from a checkpoint file."""
+    path = Path(path)
+    ckpt = read_checkpoint(path)
+    missing = {"model", "profile", "state_dict"} - set(ckpt)
     if missing:
         raise CheckpointError(f"{path}: checkpoint lacks {', '.join(sorted(missing))}")
     model = build(ckpt["model"], ckpt["profile"])

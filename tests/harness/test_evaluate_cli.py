@@ -173,3 +173,29 @@ def test_cli_exit_status_of_disk_and_internal_errors(monkeypatch, tmp_path, caps
         assert cli.main(["evaluate", "--output", str(tmp_path / "results.json")]) == expected
         err = capsys.readouterr().err
         assert "results.json" in err
+
+
+def test_evaluate_refuses_nonsense_labels_and_notes_swapped_folders(tmp_path, dataset, capsys):
+    pred = copy_as_predictions(dataset, tmp_path / "pred")
+    labels = tmp_path / "labels"
+    shutil.copytree(dataset / "training" / "label_2", labels)
+    args = ["--quiet", "evaluate", "--bootstrap", "2", "--output", str(tmp_path / "r.json")]
+    lines = (labels / "000001.txt").read_text().splitlines()
+    kitti_dontcare = "DontCare -1 -1 -10 500.0 180.0 520.0 190.0 -1 -1 -1 -1000 -1000 -1000 -10"
+    (labels / "000001.txt").write_text("\n".join([kitti_dontcare, ""] + lines) + "\n")  # line 3 is lines[0]
+    assert main(args + ["--labels", str(labels), "--predictions", str(pred)]) == 0  # KITTI's DontCare rows pass
+    for field, value, message in ((8, "-1.5", "box sizes (h w l) must be > 0, got -1.5"),
+                                  (1, "1.20", "truncation must be in [0, 1], got 1.2"),
+                                  (2, "-1", "occlusion must be 0, 1, 2 or 3, got -1")):
+        bad = lines[0].split()
+        bad[field] = value
+        (labels / "000001.txt").write_text("\n".join([kitti_dontcare, "", " ".join(bad)] + lines[1:]) + "\n")
+        assert main(args + ["--labels", str(labels), "--predictions", str(pred)]) == 2
+        assert f"{labels / '000001.txt'}:3: {message}" in capsys.readouterr().err
+    # the folders swapped: the result files given as labels are refused, labels given as results get a note
+    assert main(args + ["--labels", str(pred), "--predictions", str(dataset / "training" / "label_2")]) == 2
+    assert f"{pred / '000000.txt'}:1: has a score (16th field), as a prediction file does" in capsys.readouterr().err
+    assert main(args + ["--labels", str(dataset), "--predictions", str(dataset / "training" / "label_2")]) == 0
+    assert "is it a label folder (--labels and --predictions swapped)?" in capsys.readouterr().err
+    assert main(args + ["--labels", str(dataset), "--predictions", str(pred)]) == 0
+    assert "swapped" not in capsys.readouterr().err

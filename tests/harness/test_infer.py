@@ -67,8 +67,8 @@ def _metadata(key, value):
     (_custom_op_in_a_branch, "non-standard op my.ops::Secret"),
     (_external_constant, "tensor 'c' is stored in an external file"),
     (_without("sotif.point_cloud_range"), "metadata_props lack sotif.point_cloud_range"),
-    (_without("sotif.data_hash"), "metadata_props lack sotif.data_hash"),
-    (_metadata("sotif.point_cloud_range", "banana"), "'sotif.point_cloud_range' must be a JSON list"),
+    (_metadata("sotif.point_cloud_range", "banana"), "'sotif.point_cloud_range' must be six numbers"),
+    (_metadata("sotif.point_cloud_range", "0,-40,-3,70.4,40"), "'sotif.point_cloud_range' must be six numbers"),
 ])
 def test_contract_refuses_rules_broken_deeper_in_the_file(make_onnx, tmp_path, mutate, message):
     """Rules a file can break beyond its top-level nodes and first metadata key."""
@@ -79,6 +79,24 @@ def test_contract_refuses_rules_broken_deeper_in_the_file(make_onnx, tmp_path, m
     onnx.save(model, str(path))
     with pytest.raises(ContractError, match=rf"deep\.onnx: .*{message}"):
         check_contract(path)
+
+
+def test_a_foreign_file_needs_no_provenance_keys_and_may_give_its_range_comma_separated(make_onnx, tmp_path, dataset):
+    from harness.infer import point_cloud_range
+    meta = {"sotif.contract": "1", "sotif.architecture": "theirs", "sotif.classes": "Car",
+            "sotif.point_cloud_range": "0,-40,-3,70.4,40,1"}
+    info = check_contract(make_onnx(tmp_path / "theirs.onnx", metadata=meta))
+    assert info.provenance == {} and info.architecture == "theirs"
+    assert predict(info.path, dataset, tmp_path / "pred", progress=False)["provenance"] == {}
+    ours = check_contract(make_onnx(tmp_path / "ours.onnx", metadata={**meta, "sotif.data_hash": "d1",
+                                                                      "sotif.config_hash": ""}))
+    assert ours.provenance == {"data_hash": "d1"}  # shown when present, an empty value is absent
+    expected = [0.0, -40.0, -3.0, 70.4, 40.0, 1.0]
+    for text in ("0,-40,-3,70.4,40,1", " 0, -40, -3, 70.4, 40, 1 ", "[0, -40, -3, 70.4, 40, 1]"):
+        assert point_cloud_range(text) == expected
+    for text in ("", "[0, -40, -3, 70.4, 40]", "70.4,-40,-3,0,40,1", "0,-40,-3,nan,40,1", "[0,-40,-3,70.4,40,", "{}",
+                 "0;-40;-3;70.4;40;1"):
+        assert point_cloud_range(text) is None, text
 
 
 def test_detector_refuses_boxes_and_scores_of_different_counts(make_onnx, tmp_path):

@@ -13,7 +13,7 @@ import torch
 
 from dataclasses import replace
 
-from harness.run import RunConfig, resolve, run
+from harness.run import PROFILES, RunConfig, resolve, run
 
 TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2,
                  jobs=1)
@@ -23,7 +23,7 @@ def stage_keys(run_dir):
     return {p.stem: p.read_text() for p in (run_dir / ".stages").glob("*.json")}
 
 
-def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
+def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"
     # 1. interrupted after the data is simulated, while training
     def interrupted(*a, **k):
@@ -84,6 +84,41 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch):
     run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
     after = stage_keys(out)
     assert {k for k in after if after[k] != before[k]} == {"evaluate_pointpillars", "evaluate_point_rcnn"}
+    # 5. a damaged output reruns its stage, with a line saying so: a truncated ONNX file is exported again,
+    # an emptied and a deleted prediction file are predicted again
+    onnx_file = out / "models/pointpillars.onnx"
+    onnx_file.write_bytes(onnx_file.read_bytes()[:1000])
+    test_ids = read_image_set(out / "data/sotif/ImageSets/test.txt")
+    emptied = out / f"predictions/point_rcnn/{test_ids[0]}.txt"
+    deleted = out / f"predictions/pointpillars/{test_ids[1]}.txt"
+    kept = {p: p.read_text() for p in (emptied, deleted)}
+    emptied.write_text("")
+    deleted.unlink()
+    capsys.readouterr()
+    run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
+    err = capsys.readouterr().err
+    for line in ("export_pointpillars: models/pointpillars.onnx is not the file the stage wrote (now 1000 bytes)",
+                 f"predict_point_rcnn: predictions/point_rcnn/{test_ids[0]}.txt is not the file the stage wrote (now 0",
+                 f"predict_pointpillars: predictions/pointpillars/{test_ids[1]}.txt is missing"):
+        assert f"[redo] {line}" in err
+    from harness.infer import check_contract
+    check_contract(onnx_file)
+    assert {p: p.read_text() for p in kept} == kept
+    # 6. bad input in a model's job ends the run with its file and problem, in the run's process or in a job's
+    from harness.cli import main
+    from harness.kitti import KittiError
+    scan = out / f"data/sotif/training/velodyne/{test_ids[2]}.bin"
+    scan.write_bytes(scan.read_bytes()[:1001])
+    for name in two:
+        (out / f"predictions/{name}/{test_ids[2]}.txt").unlink()
+    with pytest.raises(KittiError, match=f"{scan}: size 1001 bytes is not a multiple of 16"):
+        run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
+    monkeypatch.setitem(PROFILES, "quick", TINY)  # the CLI's profile names: the tiny config behind one
+    capsys.readouterr()
+    args = ["--quiet", "run", "--profile", "quick", "--models", ",".join(two), "--out", str(out), "--jobs", "2"]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert f"sotif-bench run: error: {scan}: size 1001 bytes is not a multiple of 16" in err and "Traceback" not in err
 
 
 def test_wall_span_of_overlapping_stages():

@@ -1,0 +1,113 @@
+"""Skip-if-current bookkeeping of ``run``'s stages.
+
+Every stage writes a record ``RUN/.stages/<stage>.json``: ``key`` (the hash of its inputs and
+config), ``info`` (what it reported) and ``outputs`` (the SHA-256 of each file it wrote, by path
+relative to the run folder; a folder output counts every file in it but the hidden bookkeeping
+ones). A stage is skipped only when its key matches and every recorded output is there with its
+recorded hash. An output that is missing or was changed since (truncated, emptied, edited) is
+removed and the stage runs again, with a line that names the file: a stage resumes from what is
+left, so a damaged file is made anew and a sound one is kept.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import sys
+import time
+from pathlib import Path
+
+from harness.kitti import atomic_write_text
+
+
+def digest(obj) -> str:
+    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def file_digest(path: Path) -> str:
+    from harness.infer import sha256_file
+    return sha256_file(path)[:16] if Path(path).is_file() else "missing"
+
+
+def _files(path: Path) -> list[Path]:
+    """``path`` itself, or the files below the folder ``path`` but hidden ones (locks, journals, temp files)."""
+    if path.is_file():
+        return [path]
+    if not path.is_dir():
+        return []
+    return sorted(p for p in path.rglob("*") if p.is_file()
+                  and not any(part.startswith(".") for part in p.relative_to(path).parts))
+
+
+class Stages:
+    """Skip-if-current bookkeeping for the stages of one run directory."""
+
+    def __init__(self, run_dir: Path, progress: bool, bars: bool | None = None, prefix: str = ""):
+        self.root = Path(run_dir)
+        self.dir = self.root / ".stages"
+        self.progress = progress
+        self.bars = progress if bars is None else bars  # tqdm bars inside stages (off in parallel jobs)
+        self.prefix = prefix
+
+    def record(self, name: str) -> dict | None:
+        p = self.dir / f"{name}.json"
+        return json.loads(p.read_text()) if p.is_file() else None
+
+    def outputs_digest(self, name: str) -> str:
+        """One hash of the files stage ``name`` wrote (for the key of a stage that reads them)."""
+        return digest((self.record(name) or {}).get("outputs"))
+
+    def hashes(self, outputs) -> dict[str, str]:
+        return {p.relative_to(self.root).as_posix(): file_digest(p) for o in outputs for p in _files(Path(o))}
+
+    def run(self, name: str, key, fn, outputs=()) -> dict:
+        """Run ``fn() -> dict`` unless the stage's record has the same key and its outputs are as it wrote them."""
+        key = digest(key)
+        rec = self.record(name)
+        if rec and rec.get("key") == key:
+            damaged = self._damaged(rec.get("outputs"), outputs)
+            if not damaged:
+                self._say(f"[skip] {name} (up to date)")
+                return rec["info"]
+            more = f" (and {len(damaged) - 1} more file(s))" if len(damaged) > 1 else ""
+            print(f"{self.prefix}[redo] {name}: {damaged[0]}{more}; running the stage again", file=sys.stderr,
+                  flush=True)
+        self._say(f"[run ] {name}")
+        t0 = time.perf_counter()
+        info = fn() or {}
+        info = {**info, "seconds": round(time.perf_counter() - t0, 3), "finished": round(time.time(), 3)}
+        atomic_write_text(self.dir / f"{name}.json", json.dumps({"key": key, "info": info,
+                                                                 "outputs": self.hashes(outputs)},
+                                                                indent=1, default=str))
+        self._say(f"[done] {name} in {info['seconds']:.0f} s")
+        return info
+
+    def epoch_line(self, model: str):
+        """A training's per-epoch progress line with its ETA from the epochs left, where no progress bar
+        shows it (a job process beside another); None where the bar does."""
+        if not self.progress or self.bars:
+            return None
+
+        def say(done: int, epochs: int, per_epoch: float) -> None:
+            self._say(f"train {model}: epoch {done}/{epochs}, {per_epoch:.0f} s per epoch, "
+                      f"ETA {per_epoch * (epochs - done):.0f} s")
+        return say
+
+    def _damaged(self, recorded: dict | None, outputs) -> list[str]:
+        """What is wrong with a stage's outputs (empty: all as recorded); a changed file is removed."""
+        if recorded is None:
+            return ["its record holds no hashes of its outputs (an older version wrote it)"]
+        missing = [f"{Path(o).relative_to(self.root)} is missing" for o in outputs if not Path(o).exists()]
+        now = self.hashes(outputs)
+        problems = []
+        for rel, expected in recorded.items():
+            if rel not in now:
+                problems.append(f"{rel} is missing")
+            elif now[rel] != expected:
+                path = self.root / rel
+                problems.append(f"{rel} is not the file the stage wrote (now {path.stat().st_size} bytes)")
+                path.unlink()
+        return problems or missing
+
+    def _say(self, msg: str) -> None:
+        if self.progress:
+            print(self.prefix + msg, flush=True)
