@@ -18,7 +18,7 @@ OpenVINO p50 on the same SOTIF frames (one thread each), the GEMM GFLOP of a fra
 non-GEMM time from onnxruntime's profiler, and ORT time over the time the GEMMs would take at the
 GEMM peak measured in the same run (a 2048^2 MatMul):
 
-    python -m benchmarks.bench_models --speed --out /tmp/bench [--models ...] [--frames 10]
+    python -m benchmarks.bench_models --speed --out /tmp/bench [--models ...] [--frames 10] [--data DIR]
 """
 from __future__ import annotations
 
@@ -145,7 +145,7 @@ def speed(args) -> list[dict]:
 
     peak = gemm_peak()
     print(f"GEMM peak (onnxruntime MatMul 2048^2, one thread): {peak:.1f} GFLOP/s", flush=True)
-    root = args.train_data or simulate(args.out / "data" / "sotif", "sotif", args.frames + 2, 0)
+    root = args.data or simulate(args.out / "data" / "sotif", "sotif", args.frames + 2, 0)
     ds = KittiDataset(root, all_frames_split(Path(root)), with_image=True)
     samples = [ds[i] for i in range(min(len(ds), args.frames + 2))]
     rows = []
@@ -181,6 +181,7 @@ def main(argv=None) -> int:
                                                 "at most the batch size)")
     p.add_argument("--speed", action="store_true", help="runtime figures only (no training)")
     p.add_argument("--frames", type=int, default=10, help="--speed: SOTIF frames timed")
+    p.add_argument("--data", type=Path, help="--speed: a data set to take the frames from (default: simulated)")
     args = p.parse_args(argv)
     args.epochs = {k: int(v) for k, v in (kv.split("=") for kv in args.epochs.split(",") if kv)}
     torch.set_num_threads(1)
