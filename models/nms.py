@@ -111,8 +111,8 @@ def ranked_topk(scores: Tensor, k: int) -> Tensor:
     cand = torch.nonzero(take)[:, 0]  # (kk,) ascending index
     bits = index_bits(k)
     position = torch.arange(cand.shape[0], dtype=torch.int32, device=scores.device)
-    key = level[cand] * (2 ** bits) + ((2 ** bits - 1) - position)  # (kk,) distinct, < 2^31
-    return cand[torch.sort(key, descending=True).indices]
+    key = torch.index_select(level, 0, cand) * (2 ** bits) + ((2 ** bits - 1) - position)  # (kk,) distinct
+    return torch.index_select(cand, 0, torch.sort(key, descending=True).indices)
 
 
 def select_ranked(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: int,

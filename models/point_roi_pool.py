@@ -24,7 +24,7 @@ from torch import Tensor, nn
 
 from models.box_frame import inside_boxes, rotate_to_box_frame
 from models.pointnet2 import ball_queries, farthest_point_sample, shared_mlp
-from models.sparse import take_rows
+from models.voxelize import take_rows
 
 
 def sample_indices(inside: Tensor, num_samples: int) -> tuple[Tensor, Tensor]:

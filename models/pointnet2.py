@@ -26,8 +26,8 @@ from torch import Tensor, nn
 from torch._higher_order_ops.while_loop import while_loop
 
 from models.base import tracing
-from models.sparse import take_rows
 from models.vfe import RowBatchNorm
+from models.voxelize import take_rows
 
 _FAR = 1.0e4  # metres; position of the padding points used by three_nn_interpolate
 

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor, nn
 
 from models.base import training_form
-from models.voxelize import Grid, Voxels, slot_in_voxel
+from models.voxelize import Grid, Voxels, slot_in_voxel, take_rows
 
 
 def scatter_sum(values: Tensor, index: Tensor, n: int) -> Tensor:
@@ -69,9 +69,9 @@ def voxel_max_nonneg(values: Tensor, voxels: Voxels, slot: Tensor | None = None)
     slot = dynamic_slots(voxels) if slot is None else slot
     dense = torch.nonzero(slot < DENSE_SLOTS)[:, 0]  # (Q,) points in the dense layout
     rest = torch.nonzero(slot >= DENSE_SLOTS)[:, 0]  # (R,) the others (dense voxels near the sensor)
-    out = slot_max(values, (p2v * DENSE_SLOTS + slot)[dense], dense, v, DENSE_SLOTS)  # (V, C)
-    idx = p2v[rest][:, None].expand(-1, values.shape[1])  # (R, C)
-    return out.scatter_reduce(0, idx, values[rest], "amax", include_self=True)
+    out = slot_max(values, take_rows(p2v * DENSE_SLOTS + slot, dense), dense, v, DENSE_SLOTS)  # (V, C)
+    idx = take_rows(p2v, rest)[:, None].expand(-1, values.shape[1])  # (R, C)
+    return out.scatter_reduce(0, idx, take_rows(values, rest), "amax", include_self=True)
 
 
 def dynamic_slots(voxels: Voxels) -> Tensor:
@@ -118,8 +118,8 @@ def decorate_points(voxels: Voxels, grid: Grid) -> Tensor:
     x - x_c, y - y_c, z - z_c]`` (``_m``: mean of the voxel's points, ``_c``: the voxel centre)."""
     pts, p2v = voxels.points, voxels.point2voxel
     mean = scatter_mean(pts[:, :3], p2v, voxels.num_voxels)  # (V, 3) metres
-    centre = grid.centres(voxels.coords)[p2v]  # (P, 3) metres
-    return torch.cat([pts[:, :4], pts[:, :3] - mean[p2v], pts[:, :3] - centre], dim=1)
+    centre = take_rows(grid.centres(voxels.coords), p2v)  # (P, 3) metres
+    return torch.cat([pts[:, :4], pts[:, :3] - take_rows(mean, p2v), pts[:, :3] - centre], dim=1)
 
 
 class PillarVFE(nn.Module):
