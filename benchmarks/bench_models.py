@@ -11,6 +11,14 @@ frames, ONNX size and parameter count; with ``--sotif`` also the headline AP40 a
 
 Data sets are simulated once under ``<out>/data`` (or taken from ``--train-data``); training
 resumes from / reuses ``<out>/runs/<model>/checkpoint.pt``.
+
+``--speed`` trains nothing: per model (the trained ``<out>/runs/<model>/checkpoint.pt`` if there
+is one, else random weights, which the output says) it prints onnxruntime, torch eager and
+OpenVINO p50 on the same SOTIF frames (one thread each), the GEMM GFLOP of a frame, the GEMM and
+non-GEMM time from onnxruntime's profiler, and ORT time over the time the GEMMs would take at the
+GEMM peak measured in the same run (a 2048^2 MatMul):
+
+    python -m benchmarks.bench_models --speed --out /tmp/bench [--models ...] [--frames 10] [--data DIR]
 """
 from __future__ import annotations
 
@@ -102,20 +110,61 @@ def sotif_ap(name: str, onnx_path: Path, args) -> dict:
             "sotif_ap3d_30_50": dist.get("30-50"), "sotif_ap3d_50_80": dist.get("50-80")}
 
 
-def markdown(rows: list[dict]) -> str:
-    cols = [("model", "model", "{}"), ("train_s", "train s", "{:.0f}"), ("epochs", "epochs", "{}"),
-            ("ap3d_mod", "AP40 3D mod", "{:.1f}"), ("apbev_mod", "AP40 BEV mod", "{:.1f}"),
-            ("ap3d_all", "AP40 3D all", "{:.1f}"), ("ort_p50_ms", "ORT p50 ms", "{:.0f}"),
-            ("ort_p90_ms", "ORT p90 ms", "{:.0f}"), ("torch_p50_ms", "torch p50 ms", "{:.0f}"),
-            ("onnx_mb", "ONNX MB", "{:.1f}"), ("params", "params", "{:,}")]
-    if any("sotif_ap3d_all" in r for r in rows):
-        cols += [("sotif_ap3d_all", "SOTIF 3D all", "{:.1f}"), ("sotif_ap3d_30_50", "SOTIF 30-50", "{:.1f}"),
-                 ("sotif_ap3d_50_80", "SOTIF 50-80", "{:.1f}")]
+AP_COLS = [("model", "model", "{}"), ("train_s", "train s", "{:.0f}"), ("epochs", "epochs", "{}"),
+           ("ap3d_mod", "AP40 3D mod", "{:.1f}"), ("apbev_mod", "AP40 BEV mod", "{:.1f}"),
+           ("ap3d_all", "AP40 3D all", "{:.1f}"), ("ort_p50_ms", "ORT p50 ms", "{:.0f}"),
+           ("ort_p90_ms", "ORT p90 ms", "{:.0f}"), ("torch_p50_ms", "torch p50 ms", "{:.0f}"),
+           ("onnx_mb", "ONNX MB", "{:.1f}"), ("params", "params", "{:,}")]
+SOTIF_COLS = [("sotif_ap3d_all", "SOTIF 3D all", "{:.1f}"), ("sotif_ap3d_30_50", "SOTIF 30-50", "{:.1f}"),
+              ("sotif_ap3d_50_80", "SOTIF 50-80", "{:.1f}")]
+
+
+def markdown(rows: list[dict], cols=None) -> str:
+    if cols is None:
+        cols = AP_COLS + (SOTIF_COLS if any("sotif_ap3d_all" in r for r in rows) else [])
     lines = ["| " + " | ".join(c[1] for c in cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         cells = [fmt.format(r[k]) if r.get(k) is not None else "-" for k, _, fmt in cols]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+SPEED_COLS = [("model", "model", "{}"), ("weights", "weights", "{}"), ("ort_p50_ms", "ORT ms", "{:.0f}"),
+              ("torch_p50_ms", "torch ms", "{:.0f}"), ("ov_p50_ms", "OpenVINO ms", "{:.0f}"),
+              ("ov_same_boxes", "OV = ORT boxes", "{:.0%}"), ("gemm_gflop", "GEMM GFLOP", "{:.2f}"),
+              ("gemm_ms", "GEMM ms", "{:.0f}"), ("other_ms", "non-GEMM ms", "{:.0f}"),
+              ("ort_over_gemm_peak", "ORT / GEMM at peak", "{:.1f}"), ("top_other", "largest non-GEMM ops", "{}")]
+
+
+def speed(args) -> list[dict]:
+    """The ``--speed`` rows (see the module docstring)."""
+    from benchmarks.model_speed import random_weights, speed_row
+    from benchmarks.ort_profile import gemm_peak
+    from models.export import export_checkpoint, export_onnx
+    from models.zoo import build, load_checkpoint
+
+    peak = gemm_peak()
+    print(f"GEMM peak (onnxruntime MatMul 2048^2, one thread): {peak:.1f} GFLOP/s", flush=True)
+    root = args.data or simulate(args.out / "data" / "sotif", "sotif", args.frames + 2, 0)
+    ds = KittiDataset(root, all_frames_split(Path(root)), with_image=True)
+    samples = [ds[i] for i in range(min(len(ds), args.frames + 2))]
+    rows = []
+    for name in args.models.split(","):
+        ckpt, path = args.out / "runs" / name / "checkpoint.pt", args.out / "models" / f"{name}.onnx"
+        if ckpt.is_file():
+            model, _ = load_checkpoint(ckpt)
+            export_checkpoint(ckpt, path, expected_model=name)
+        else:
+            torch.manual_seed(0)
+            model = build(name, args.profile)
+            random_weights(model, samples[-2:])
+            export_onnx(model, path, {"sotif.profile": args.profile})
+        row = {"model": name, "weights": "trained" if ckpt.is_file() else "random",
+               **speed_row(model, path, samples[: args.frames], peak)}
+        row["top_other"] = ", ".join(f"{op} {ms:.0f}" for op, ms in row["top_other"])
+        rows.append(row)
+        print(markdown(rows[-1:], SPEED_COLS), flush=True)
+    return rows
 
 
 def main(argv=None) -> int:
@@ -130,9 +179,17 @@ def main(argv=None) -> int:
     p.add_argument("--sotif", action="store_true")
     p.add_argument("--workers", type=int, help="data-parallel training processes (default: one per core, "
                                                 "at most the batch size)")
+    p.add_argument("--speed", action="store_true", help="runtime figures only (no training)")
+    p.add_argument("--frames", type=int, default=10, help="--speed: SOTIF frames timed")
+    p.add_argument("--data", type=Path, help="--speed: a data set to take the frames from (default: simulated)")
     args = p.parse_args(argv)
     args.epochs = {k: int(v) for k, v in (kv.split("=") for kv in args.epochs.split(",") if kv)}
     torch.set_num_threads(1)
+    if args.speed:
+        rows = speed(args)
+        kitti.atomic_write_text(args.out / "bench_speed.json", json.dumps(rows, indent=1))
+        print(markdown(rows, SPEED_COLS))
+        return 0
     train_root = args.train_data or simulate(args.out / "data" / "train", "train", 400, 0)
     eval_root = simulate(args.out / "data" / "heldout_clear", "train", args.heldout_frames, 1, list(CLEAR))
     split = all_frames_split(eval_root)

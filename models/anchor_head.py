@@ -19,7 +19,7 @@ from torch.nn import functional as F
 from models import box_coder
 from models.iou import iou_bev_sparse
 from models.losses import box_regression_loss, direction_loss, sigmoid_focal_loss
-from models.nms import select_detections
+from models.nms import select_ranked
 
 
 @dataclass(frozen=True)
@@ -115,8 +115,8 @@ class AnchorHead(nn.Module):
         """Final boxes (M, 7) and scores (M,) after score threshold and rotated NMS."""
         cls, box, dirs = self(feats)
         c = self.cfg
-        return select_detections(self.decode(box, dirs), torch.sigmoid(cls), c.score_thresh,
-                                 c.nms_pre, c.nms_iou, c.max_out)
+        return select_ranked(self.decode(box, dirs), torch.sigmoid(cls), c.score_thresh,
+                             c.nms_pre, c.nms_iou, c.max_out)
 
     def loss(self, feats: Tensor, gt: Tensor, ignore: Tensor) -> dict[str, Tensor]:
         """Losses for one frame: gt (K, 7) Car boxes, ignore (J, 7) boxes not to penalise."""

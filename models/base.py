@@ -15,9 +15,11 @@ A detector is an ``nn.Module`` built from a frozen config dataclass. The harness
 """
 from __future__ import annotations
 
+from typing import Iterable
+
 import numpy as np
 import torch
-from torch import nn
+from torch import Tensor, nn
 
 ONE_STAGE_OUTPUTS = ("boxes", "scores")
 TWO_STAGE_OUTPUTS = ("boxes", "scores", "rois", "roi_scores", "rcnn_boxes")
@@ -33,6 +35,15 @@ def training_form() -> bool:
     """True in eager mode with autograd on: code with a faster-to-train form of an op (same values
     and gradients as its inference / graph form) takes that one."""
     return torch.is_grad_enabled() and not tracing()
+
+
+def mean_over_frames(frame_losses: Iterable[dict[str, Tensor]], frames: int) -> dict[str, Tensor]:
+    """Each loss term averaged over the frames of a batch (frames run one by one: no batch axis)."""
+    totals: dict[str, Tensor] = {}
+    for losses in frame_losses:
+        for k, v in losses.items():
+            totals[k] = totals.get(k, 0.0) + v / frames
+    return totals
 
 
 class Detector(nn.Module):

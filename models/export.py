@@ -1,9 +1,10 @@
 """ONNX export following the contract of DESIGN.md.
 
 ``export_onnx(model, path, metadata) -> dict`` exports one frame's forward with the dynamo
-exporter (opset 18, dynamic number of points), checks the file with ``onnx.checker``, writes
-the ``sotif.*`` metadata_props and the op histogram (JSON under ``sotif.op_histogram``) and
-writes the file atomically; it returns the op histogram. Camera models (``uses_camera``) take
+exporter (opset 18, dynamic number of points), checks the file with ``onnx.checker``, drops the
+exporter's stack-trace metadata (so that the bytes depend on the weights only), writes the
+``sotif.*`` metadata_props and the op histogram (JSON under ``sotif.op_histogram``) and writes
+the file atomically; it returns the op histogram. Camera models (``uses_camera``) take
 ``image`` [1, 3, H, W] and ``lidar2img`` [4, 4] too, with (H, W) from the model's
 ``image_hw`` attribute (or ``cfg.image_hw``).
 
@@ -73,6 +74,29 @@ def op_histogram(model_proto: onnx.ModelProto) -> dict[str, int]:
     return dict(sorted(counts.items()))
 
 
+def _graphs(proto: onnx.ModelProto):
+    """The main graph and every Loop / If body in it."""
+    stack = [proto.graph]
+    while stack:
+        graph = stack.pop()
+        yield graph
+        for node in graph.node:
+            for attr in node.attribute:
+                stack.extend([attr.g] if attr.type == onnx.AttributeProto.GRAPH else attr.graphs)
+
+
+def strip_trace_metadata(proto: onnx.ModelProto) -> None:
+    """Drop the exporter's per-node and per-value metadata (stack traces with this checkout's
+    paths and the tracer's call counters), so that one checkpoint always gives the same bytes."""
+    for graph in _graphs(proto):
+        for items in (graph.node, graph.value_info, graph.input, graph.output, graph.initializer):
+            for item in items:
+                del item.metadata_props[:]
+    for fn in proto.functions:
+        for node in fn.node:
+            del node.metadata_props[:]
+
+
 def contract_metadata(model: Detector, metadata: dict[str, str]) -> dict[str, str]:
     meta = {"sotif.contract": "1", "sotif.architecture": model.architecture, "sotif.classes": "Car",
             "sotif.point_cloud_range": json.dumps([float(v) for v in model.cfg.pc_range]),
@@ -120,6 +144,7 @@ def export_onnx(model: Detector, path, metadata: dict[str, str]) -> dict[str, in
             raise ExportError(f"{model.architecture}: ONNX export failed: {exc}") from exc
         proto = onnx.load(str(Path(tmp) / "model.onnx"))
     onnx.checker.check_model(proto, full_check=True)
+    strip_trace_metadata(proto)
     hist = op_histogram(proto)
     meta = contract_metadata(model, metadata)
     meta["sotif.op_histogram"] = json.dumps(hist)
@@ -156,3 +181,29 @@ def run_onnx(path, *inputs: np.ndarray) -> list[np.ndarray]:
     sess = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
     names = [i.name for i in sess.get_inputs()]
     return sess.run(None, dict(zip(names, inputs)))
+
+
+_INTEGER_TYPES = (onnx.TensorProto.INT64, onnx.TensorProto.INT32)
+
+
+def integer_extremes(path, *inputs: np.ndarray) -> dict[str, int]:
+    """Largest magnitude of every computed integer tensor of the main graph of an exported file on
+    these inputs (onnxruntime, each one made a graph output; constants such as a Slice's "to the
+    end" are left out): name -> max |value| (0 when empty).
+
+    OpenVINO's CPU plugin computes int64 in int32, so every value here must stay below 2^31."""
+    import onnxruntime as ort
+
+    proto = onnx.load(str(path))
+    typed = {v.name: v for v in proto.graph.value_info}
+    computed = {o for node in proto.graph.node if node.op_type != "Constant" for o in node.output}
+    names = [n for n, v in typed.items() if v.type.tensor_type.elem_type in _INTEGER_TYPES and n in computed]
+    outputs = {o.name for o in proto.graph.output}
+    proto.graph.output.extend(typed[n] for n in names if n not in outputs)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = 1
+    opts.log_severity_level = 3
+    sess = ort.InferenceSession(proto.SerializeToString(), opts, providers=["CPUExecutionProvider"])
+    feeds = dict(zip([i.name for i in sess.get_inputs()], inputs))
+    values = sess.run(names, feeds)
+    return {n: int(np.abs(v.astype(np.int64)).max()) if v.size else 0 for n, v in zip(names, values)}

@@ -149,10 +149,11 @@ def bilinear_sample(feat: Tensor, uv: Tensor, visible: Tensor, image_hw: tuple) 
     x0, y0 = x0f.long(), y0f.long()
     x1 = (x0 + 1).clamp(max=wl - 1)
     y1 = (y0 + 1).clamp(max=hl - 1)
-    flat = feat.reshape(c, hl * wl)  # (C, H_l*W_l)
+    rows = feat.reshape(c, hl * wl).t().contiguous()  # (H_l*W_l, C): one row per pixel
 
     def gather(yy: Tensor, xx: Tensor) -> Tensor:
-        return flat.index_select(1, yy * wl + xx).t()  # (N, C)
+        # whole rows on axis 0: onnxruntime gathers columns of (C, H_l*W_l) element by element
+        return rows.index_select(0, yy * wl + xx)  # (N, C)
 
     out = (
         gather(y0, x0) * ((1 - wx) * (1 - wy))[:, None]

@@ -27,17 +27,16 @@ import torch
 from torch import Tensor, nn
 
 from harness.types import Sample
-from models.anchor_head import AnchorHead, HeadConfig
-from models.backbone2d import BEVBackbone
-from models.base import Detector
+from models.anchor_head import HeadConfig
+from models.base import Detector, mean_over_frames, training_form
 from models.image_branch import ImageBranch, ImageBranchConfig, PointFusion, PointFusionConfig
 from models.second import KITTI as SECOND_KITTI
 from models.second import TINY as SECOND_TINY
 from models.second import SECONDConfig
-from models.single_stage import frame_targets
+from models.single_stage import bev_stages, frame_targets
 from models.sparse import SparseTensor, height_compress
-from models.vfe import RowBatchNorm, decorate_points, scatter_max_nonneg
-from models.voxel_backbone import VoxelBackbone, VoxelBackboneConfig, output_shape
+from models.vfe import RowBatchNorm, decorate_points, dynamic_slots, voxel_max_nonneg
+from models.voxel_backbone import VoxelBackbone, VoxelBackboneConfig
 from models.voxelize import Grid, Voxels, dynamic_voxelize
 
 _SECOND = SECONDConfig()
@@ -114,13 +113,13 @@ class FusionVFE(nn.Module):
     def forward(self, voxels: Voxels, img_feats: list[Tensor], lidar2img: Tensor, image_hw: tuple) -> Tensor:
         """-> (V, fusion_out) voxel features."""
         x = self.decorate(voxels)  # (P, 10)
-        p2v, v = voxels.point2voxel, voxels.num_voxels
+        slot = None if training_form() else dynamic_slots(voxels)  # (P,) shared by both maxima
         for i, layer in enumerate(self.layers):
             x = torch.relu(layer(x))  # (P, C)
             if i < len(self.layers) - 1:
-                x = torch.cat([x, scatter_max_nonneg(x, p2v, v)[p2v]], dim=1)  # (P, 2C)
+                x = torch.cat([x, voxel_max_nonneg(x, voxels, slot)[voxels.point2voxel]], dim=1)  # (P, 2C)
         fused = self.fusion(img_feats, voxels.points[:, :3], x, lidar2img, image_hw)  # (P, C_f) >= 0
-        return scatter_max_nonneg(fused, p2v, v)  # (V, C_f)
+        return voxel_max_nonneg(fused, voxels, slot)  # (V, C_f)
 
 
 class MVXNet(Detector):
@@ -135,11 +134,8 @@ class MVXNet(Detector):
         self.image_branch = ImageBranch(cfg.image)
         self.vfe = FusionVFE(self.grid, cfg)
         self.backbone3d = VoxelBackbone(self.vfe.out_channels, cfg.backbone3d)
-        d, h, w = output_shape(self.grid.shape, cfg.backbone3d)
-        self.backbone2d = BEVBackbone(cfg.backbone3d.out_channels * d, cfg.layers, cfg.strides, cfg.filters,
-                                      cfg.upsample_strides, cfg.upsample_filters)
-        up = cfg.upsample_strides[0] / cfg.strides[0]  # BEV map -> head map scale
-        self.head = AnchorHead(self.backbone2d.out_channels, (round(h * up), round(w * up)), cfg.pc_range, cfg.head)
+        self.backbone2d, self.head = bev_stages(self.grid, cfg.backbone3d, cfg.pc_range, cfg.head, cfg.layers,
+                                                cfg.strides, cfg.filters, cfg.upsample_strides, cfg.upsample_filters)
 
     def bev(self, points: Tensor, image: Tensor, lidar2img: Tensor) -> Tensor:
         """points (N, 4), image (1, 3, H, W) in [0, 1], lidar2img (4, 4) -> BEV map (1, C*D, H', W')."""
@@ -155,18 +151,16 @@ class MVXNet(Detector):
 
     def loss(self, samples: list[Sample]) -> dict[str, Tensor]:
         """Mean over frames of the anchor-head losses; every sample needs image and lidar2img."""
+        return mean_over_frames((self.frame_loss(s) for s in samples), len(samples))
+
+    def frame_loss(self, sample: Sample) -> dict[str, Tensor]:
+        if sample.image is None or sample.lidar2img is None:
+            raise ValueError(f"mvx_net: frame {sample.frame_id} has no camera image / lidar2img")
         device = next(self.parameters()).device
-        totals: dict[str, Tensor] = {}
-        for sample in samples:
-            if sample.image is None or sample.lidar2img is None:
-                raise ValueError(f"mvx_net: frame {sample.frame_id} has no camera image / lidar2img")
-            points, gt, ignore = frame_targets(sample, device)
-            image = torch.as_tensor(sample.image, dtype=torch.float32, device=device)[None]  # (1, 3, H, W)
-            lidar2img = torch.as_tensor(sample.lidar2img, dtype=torch.float32, device=device)  # (4, 4)
-            losses = self.head.loss(self.backbone2d(self.bev(points, image, lidar2img)), gt, ignore)
-            for k, v in losses.items():
-                totals[k] = totals.get(k, 0.0) + v / len(samples)
-        return totals
+        points, gt, ignore = frame_targets(sample, device)
+        image = torch.as_tensor(sample.image, dtype=torch.float32, device=device)[None]  # (1, 3, H, W)
+        lidar2img = torch.as_tensor(sample.lidar2img, dtype=torch.float32, device=device)  # (4, 4)
+        return self.head.loss(self.backbone2d(self.bev(points, image, lidar2img)), gt, ignore)
 
 
 def build(profile: str = "compact") -> MVXNet:

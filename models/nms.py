@@ -1,4 +1,15 @@
-"""Rotated BEV NMS inside the graph: pair pre-filter + IoU + a fixed-point loop (exact greedy NMS).
+"""The one selection path of every detector: ranked top-k -> score threshold -> rotated BEV NMS.
+
+- ``ranked_topk``: the k best of A candidates by score, equal scores ranked by the lower index.
+  torch's CPU sort / topk, onnxruntime's TopK and OpenVINO's TopK break ties differently (OpenVINO's
+  is not stable), and the runtimes' scores of identical inputs differ by float noise (~1e-7), so
+  the k candidates are chosen by value comparisons and ranked by ONE distinct int32 key each: the
+  score quantised to 2^-16 above the candidate's index rank. Scores closer than a level rank by
+  index. Every key fits int32: OpenVINO's CPU plugin computes int64 in int32.
+- ``nms_in_order``: greedy rotated NMS of boxes given best first, as a pair pre-filter
+  (``suppression_candidates``), the rotated IoU of the candidate pairs and a fixed-point loop.
+- ``select_ranked``: the two together, with a score threshold and a cap, for the final boxes of
+  the one-stage heads and the proposals and final boxes of the two-stage models.
 
 With boxes sorted by score and S[j, i] = (j < i and IoU(j, i) > t), greedy NMS keeps box i
 iff no KEPT box j suppresses it. Iterating ``keep <- not any_j(keep[j] and S[j, i])`` from
@@ -6,7 +17,7 @@ all-True reaches that unique fixed point (after t rounds the first t entries are
 practice a few rounds), so the result equals greedy NMS exactly. The loop is a
 ``torch._higher_order_ops.while_loop``, which the dynamo exporter turns into an ONNX Loop.
 The rotated IoU is computed only for the pairs whose axis-aligned BEV bounds could overlap
-enough (``suppression_candidates``): a few percent of the K^2 pairs of detections.
+enough: a few percent of the K^2 pairs of detections.
 """
 from __future__ import annotations
 
@@ -35,12 +46,6 @@ def suppress_fixed_point(suppress: Tensor) -> Tensor:
     while bool(changed):  # eager: the same iteration as a Python loop (while_loop would compile)
         keep, changed = body(keep, changed)
     return keep
-
-
-def nms_rotated(boxes: Tensor, scores: Tensor, iou_thresh: float) -> Tensor:
-    """(M,) int64 indices of the boxes (K, 7) kept by greedy rotated BEV NMS, best first."""
-    order = topk_indices(scores, scores.shape[0])  # (K,) best first, ties by lower index
-    return order[nms_in_order(boxes[order], iou_thresh)]
 
 
 _BOUND_SLACK = 0.9  # the AABB bound is tested against 90 % of the IoU limit: float-safe
@@ -76,20 +81,49 @@ def nms_in_order(boxes: Tensor, iou_thresh: float) -> Tensor:
     return torch.nonzero(keep)[:, 0]
 
 
-def topk_indices(scores: Tensor, k: int) -> Tensor:
-    """(min(k, N),) indices of the largest scores, best first; ties by lower index, as ONNX
-    TopK does (torch.topk leaves tie order unspecified)."""
-    if torch.compiler.is_exporting():
-        return torch.topk(scores, min(k, scores.shape[0])).indices  # ONNX TopK: ties by index
-    return torch.sort(scores, descending=True, stable=True).indices[:k]
+INT32_MAX = 2 ** 31 - 1
+SCORE_LEVELS = 2 ** 16  # score quantisation of the ranking key: coarser than float noise (~1e-7)
+MAX_K = 2 ** 14  # candidates a ranking holds: SCORE_LEVELS * 2 * MAX_K = 2^31
 
 
-def select_detections(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: int,
-                      nms_thresh: float, max_out: int) -> tuple[Tensor, Tensor]:
-    """Top ``nms_pre`` by score -> score threshold -> rotated NMS -> at most ``max_out``."""
-    top = topk_indices(scores, nms_pre)  # (K,)
-    boxes, scores = boxes[top], scores[top]
+def index_bits(bound: int) -> int:
+    """Bits that hold every index below ``bound`` (at least 1)."""
+    return max(1, (bound - 1).bit_length())
+
+
+def ranked_topk(scores: Tensor, k: int) -> Tensor:
+    """(min(k, A),) indices of scores (A,) in [0, 1], best first: ranked by the score quantised to
+    2^-16, equal levels by the lower index (also at the cut: the k best are the first k so ranked).
+
+    The candidates are every score level above the k-th largest level and the first ones equal to
+    it, found by comparisons and NonZero (ascending), so no TopK tie rule enters; they are then
+    ranked by one distinct int32 key, ``level * 2^b + (2^b - 1 - position)``.
+    """
+    if k > MAX_K:
+        raise ValueError(f"ranked_topk: k = {k} > {MAX_K} would overflow the int32 ranking key")
+    kk = torch.sym_min(k, scores.shape[0])
+    level = torch.floor(scores.clamp(0.0, 1.0) * SCORE_LEVELS).to(torch.int32)  # (A,) in [0, 2^16]
+    top = torch.topk(level, kk).values  # (kk,) descending: values, not indices, so tie-free
+    cut = torch.cat([level.new_full((1,), SCORE_LEVELS + 1), top])[-1]  # k-th largest (none: above all)
+    above, at = level > cut, level == cut  # (A,)
+    room = kk - above.sum()
+    take = above | (at & (torch.cumsum(at.to(torch.int32), 0) <= room))
+    cand = torch.nonzero(take)[:, 0]  # (kk,) ascending index
+    bits = index_bits(k)
+    position = torch.arange(cand.shape[0], dtype=torch.int32, device=scores.device)
+    key = torch.index_select(level, 0, cand) * (2 ** bits) + ((2 ** bits - 1) - position)  # (kk,) distinct
+    return torch.index_select(cand, 0, torch.sort(key, descending=True).indices)
+
+
+def select_ranked(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: int,
+                  nms_iou: float, max_out: int) -> tuple[Tensor, Tensor]:
+    """Top ``nms_pre`` by score -> score threshold -> rotated NMS -> at most ``max_out``.
+
+    boxes (A, 7), scores (A,) in [0, 1] -> (M, 7), (M,) best first.
+    """
+    order = ranked_topk(scores, nms_pre)  # (K,)
+    boxes, scores = boxes[order], scores[order]
     good = scores > score_thresh
     boxes, scores = boxes[good], scores[good]
-    keep = nms_rotated(boxes, scores, nms_thresh)[:max_out]
+    keep = nms_in_order(boxes, nms_iou)[:max_out]
     return boxes[keep], scores[keep]

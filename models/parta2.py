@@ -21,17 +21,17 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from harness.types import Sample
-from models.anchor_head import AnchorHead, HeadConfig
-from models.backbone2d import BEVBackbone
-from models.base import Detector
+from models.anchor_head import HeadConfig
+from models.base import Detector, mean_over_frames
+from models.box_frame import inside_local, to_box_frame
 from models.losses import sigmoid_focal_loss
 from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITargetConfig,
                              finalize, propose, refine_loss, roi_support, sample_rois)
-from models.roi_pool import roiaware_pool, to_roi_frame
-from models.single_stage import frame_targets
+from models.roi_pool import roiaware_pool
+from models.single_stage import bev_stages, frame_targets
 from models.sparse import SparseInverseConv3d, SparseTensor, SubMConv3d, conv_block, height_compress, to_dense
 from models.vfe import MeanVFE
-from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig, output_shape
+from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig
 from models.voxelize import Grid, hard_voxelize
 
 
@@ -142,10 +142,9 @@ def part_targets(xyz: Tensor, gt: Tensor, margin: float) -> tuple[Tensor, Tensor
     if gt.shape[0] == 0:
         zeros = xyz.new_zeros(xyz.shape[0])
         return zeros, zeros.bool(), xyz.new_zeros(xyz.shape[0], 3)
-    local = to_roi_frame(xyz, gt)  # (G, V, 3)
-    half = gt[:, None, 3:6] / 2  # (G, 1, 3)
-    inside = (local.abs() < half).all(-1)  # (G, V)
-    near = (local.abs() < half + margin).all(-1)  # (G, V)
+    local = to_box_frame(xyz, gt)  # (G, V, 3)
+    inside = inside_local(local, gt)  # (G, V)
+    near = inside_local(local, gt, 2 * margin)  # (G, V)
     fg = inside.any(0)  # (V,)
     owner = inside.float().argmax(0)  # (V,) first containing box
     frac = local / gt[:, None, 3:6] + 0.5  # (G, V, 3)
@@ -220,12 +219,8 @@ class PartA2(Detector):
         self.grid = cfg.grid
         self.vfe = MeanVFE()
         self.unet = SparseUNet(MeanVFE.out_channels, cfg.backbone3d)
-        d, h, w = output_shape(self.grid.shape, cfg.backbone3d)
-        self.backbone2d = BEVBackbone(cfg.backbone3d.out_channels * d, cfg.bev_layers, cfg.bev_strides,
-                                      cfg.bev_filters, cfg.bev_up_strides, cfg.bev_up_filters)
-        scale = cfg.bev_up_strides[0] / cfg.bev_strides[0]  # BEV output cells per input cell
-        feat_hw = (round(h * scale), round(w * scale))
-        self.rpn = AnchorHead(self.backbone2d.out_channels, feat_hw, cfg.pc_range, cfg.head)
+        self.backbone2d, self.rpn = bev_stages(self.grid, cfg.backbone3d, cfg.pc_range, cfg.head, cfg.bev_layers,
+                                               cfg.bev_strides, cfg.bev_filters, cfg.bev_up_strides, cfg.bev_up_filters)
         c1 = cfg.backbone3d.stem_channels
         self.seg_head = nn.Sequential(nn.Linear(c1, c1), nn.ReLU(), nn.Linear(c1, 1))
         self.part_head = nn.Sequential(nn.Linear(c1, c1), nn.ReLU(), nn.Linear(c1, 3))
@@ -278,11 +273,7 @@ class PartA2(Detector):
     def loss(self, samples: list[Sample]) -> dict[str, Tensor]:
         """Mean over frames (frames run one by one: no batch axis)."""
         device = next(self.parameters()).device
-        totals: dict[str, Tensor] = {}
-        for sample in samples:
-            for k, v in self.frame_loss(sample, device).items():
-                totals[k] = totals.get(k, 0.0) + v / len(samples)
-        return totals
+        return mean_over_frames((self.frame_loss(s, device) for s in samples), len(samples))
 
 
 def build(profile: str = "compact") -> PartA2:

@@ -23,10 +23,11 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from harness.types import Sample
-from models.base import Detector
-from models.nms import nms_in_order, nms_rotated
-from models.point_roi_pool import RoISetAbstraction, inside_rois, roi_point_pool
-from models.pointnet2 import FeaturePropagation, SetAbstraction, farthest_point_sample, group_points, shared_mlp
+from models.base import Detector, mean_over_frames
+from models.box_frame import inside_boxes
+from models.nms import nms_in_order, ranked_topk, select_ranked
+from models.point_roi_pool import RoISetAbstraction, roi_point_pool
+from models.pointnet2 import FeaturePropagation, SetAbstraction, farthest_point_sample, shared_mlp
 from models.roi_head import (
     RefineHead,
     RoITargetConfig,
@@ -165,31 +166,6 @@ def bin_loss(pred: Tensor, bins: Tensor, res: Tensor, cfg: PointRCNNConfig) -> T
 # ---- network ---------------------------------------------------------------------------------
 
 
-def interpolate_3nn(unknown: Tensor, known: Tensor, known_feats: Tensor) -> Tensor:
-    """models.pointnet2.three_nn_interpolate with the distance floored by clamp(min=1e-8).
-
-    Coarse points are a subset of the fine ones, so zero distances are the rule. The
-    pointnet2 version adds 1e-8 instead; the onnxscript graph optimizer (optimize=True)
-    folds that addition away as "+ 0" and the exported graph then divides inf by inf.
-    """
-    far = known.new_full((3, 3), 1.0e4)  # padding points with zero features, metres
-    known_p = torch.cat([known, far], 0)  # (M + 3, 3)
-    feats_p = torch.cat([known_feats, known_feats.new_zeros(3, known_feats.shape[1])], 0)
-    d2 = ((unknown[:, None, :] - known_p[None, :, :]) ** 2).sum(-1)  # (N, M + 3) m^2
-    d2_nn, idx = torch.topk(d2, 3, dim=1, largest=False, sorted=True)  # (N, 3)
-    weight = 1.0 / torch.sqrt(d2_nn).clamp(min=1e-8)  # (N, 3)
-    weight = weight / weight.sum(1, keepdim=True)
-    return (group_points(feats_p, idx) * weight[:, :, None]).sum(1)  # (N, C)
-
-
-class FeaturePropagation3NN(FeaturePropagation):
-    """FeaturePropagation using interpolate_3nn."""
-
-    def forward(self, fine_xyz: Tensor, coarse_xyz: Tensor, fine_feats: Tensor, coarse_feats: Tensor) -> Tensor:
-        up = interpolate_3nn(fine_xyz, coarse_xyz, coarse_feats)  # (N, Cc)
-        return self.mlp(torch.cat([up, fine_feats], -1))
-
-
 class PointNet2Backbone(nn.Module):
     """MSG set abstraction down to sa_npoints[-1] centres, feature propagation back to P0."""
 
@@ -204,7 +180,7 @@ class PointNet2Backbone(nn.Module):
         self.fp = nn.ModuleList()
         for level in reversed(range(len(cfg.fp_mlps))):  # coarsest first
             coarse = channels[-1] if level == len(cfg.fp_mlps) - 1 else cfg.fp_mlps[level + 1][-1]
-            self.fp.append(FeaturePropagation3NN([coarse + channels[level], *cfg.fp_mlps[level]]))
+            self.fp.append(FeaturePropagation([coarse + channels[level], *cfg.fp_mlps[level]]))
         self.out_channels = cfg.fp_mlps[0][-1]
 
     def forward(self, xyz: Tensor, feats: Tensor) -> Tensor:
@@ -318,9 +294,8 @@ class PointRCNN(Detector):
         R = cfg.rois always: the K <= R proposals that survive NMS come first, then zero rows.
         """
         scores = torch.sigmoid(seg)  # (n0,)
-        top = torch.topk(scores, min(self.cfg.pre_nms, self.cfg.num_points)).indices  # (T,)
+        top = ranked_topk(scores, self.cfg.pre_nms)  # (T,) best first
         boxes = decode_bins(box[top], pts[top, :3], self.cfg)  # (T, 7)
-        # top is in descending score order (ties as TopK returns them): NMS in that order
         keep = nms_in_order(boxes, self.cfg.proposal_nms_iou)  # (K,)
         slot = torch.cat([keep, keep.new_zeros(self.cfg.rois)])[: self.cfg.rois]  # (R,)
         valid = torch.arange(self.cfg.rois, device=seg.device) < keep.shape[0]  # (R,)
@@ -343,19 +318,17 @@ class PointRCNN(Detector):
         logit, deltas = self.refine(pts, feats, seg, rois, valid)
         rcnn_boxes = decode_canonical(deltas, rois)  # (R, 7)
         scores = torch.sigmoid(logit) * valid.to(logit.dtype)  # (R,)
-        # NMS before the score threshold keeps the NMS input shape static; boxes below the
-        # threshold come last in score order, so they cannot change which ones above it survive
-        keep = nms_rotated(rcnn_boxes, scores, self.cfg.nms_iou)
-        keep = keep[scores[keep] > self.cfg.score_thresh][: self.cfg.max_detections]
+        boxes, scores = select_ranked(rcnn_boxes, scores, self.cfg.score_thresh, self.cfg.rois,
+                                      self.cfg.nms_iou, self.cfg.max_detections)
         k = valid.sum()
-        return rcnn_boxes[keep], scores[keep], rois[:k], roi_scores[:k], rcnn_boxes[:k]
+        return boxes, scores, rois[:k], roi_scores[:k], rcnn_boxes[:k]
 
     # ---- training ----------------------------------------------------------------------------
 
     def seg_targets(self, xyz: Tensor, cars: Tensor, others: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """fg (n0,) bool, weight (n0,) 0 for ignored points, matched car box per point (n0, 7)."""
-        inside = inside_rois(xyz, cars)  # (G, n0)
-        near = inside_rois(xyz, cars, self.cfg.seg_ignore_margin).any(0) | inside_rois(xyz, others).any(0)
+        inside = inside_boxes(xyz, cars)  # (G, n0)
+        near = inside_boxes(xyz, cars, self.cfg.seg_ignore_margin).any(0) | inside_boxes(xyz, others).any(0)
         fg = inside.any(0)
         weight = (fg | ~near).float()
         match = cars[inside.float().argmax(0)] if len(cars) else xyz.new_zeros(len(xyz), 7)
@@ -387,8 +360,7 @@ class PointRCNN(Detector):
 
     def loss(self, samples: list[Sample]) -> dict[str, Tensor]:
         """Mean over frames of the stage-1 (focal seg + bin box) and stage-2 losses."""
-        parts = [self.frame_loss(s) for s in samples]
-        out = {k: torch.stack([p[k] for p in parts]).mean() for k in parts[0]}
+        out = mean_over_frames((self.frame_loss(s) for s in samples), len(samples))
         out["loss"] = sum(out.values())
         return out
 

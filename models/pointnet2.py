@@ -1,12 +1,18 @@
 """PointNet++ point operators in plain torch, exportable to standard ONNX ops.
 
-One frame, no batch axis. Every operator accepts empty inputs:
+One frame, no batch axis; FPS and ball query also take a leading batch axis (PointRCNN's
+refinement runs them inside every RoI at once). Every operator accepts empty inputs:
 
 - ``farthest_point_sample``: iterative FPS, a ``while_loop`` (ONNX ``Loop``) when exported and
-  a Python loop in eager mode (same arithmetic, same result).
-- ``ball_query``: squared distances + ``TopK`` of the first ``nsample`` in-radius indices, padded
-  with the first neighbour like the CUDA op; a ball with no neighbour points at the zero row
-  that ``group_points`` appends.
+  a Python loop in eager mode (same arithmetic, same result). The points are held as three
+  coordinate rows: onnxruntime broadcasts ``(B, N) - (B, 1)`` row by row but ``(N, 3) - (3,)``
+  three elements at a time.
+- ``ball_queries``: the first ``nsample`` in-radius indices (``TopK`` of the index) of every
+  centre, for several radii over one distance matrix, padded with the first neighbour like the
+  CUDA op; a ball with no neighbour points at the zero row that ``group_points`` appends. The
+  distances come from one GEMM, ``|c|^2 + |x|^2 - 2 c x^T``, which only nominates candidates:
+  the first ``2 * nsample`` points within the radius plus a rounding band, whose exact distances
+  then decide (so the neighbours are those of the direct ``(c - x)^2`` sum).
 - ``three_nn_interpolate``: 3-NN inverse-distance interpolation for feature propagation.
 - ``SetAbstraction``: multi-scale grouping (several radii), shared MLP, max-pool.
 - ``FeaturePropagation``: interpolation + skip concatenation + shared MLP.
@@ -21,74 +27,132 @@ from torch._higher_order_ops.while_loop import while_loop
 
 from models.base import tracing
 from models.vfe import RowBatchNorm
+from models.voxelize import take_rows
 
 _FAR = 1.0e4  # metres; position of the padding points used by three_nn_interpolate
 
 
+def _rows(xyz: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """(B, N, 3) -> x, y, z rows (B, N + 1) with a padding point at the origin in column N."""
+    padded = torch.cat([xyz, xyz.new_zeros(xyz.shape[0], 1, 3)], 1).transpose(1, 2)  # (B, 3, N + 1)
+    return padded[:, 0].clone(), padded[:, 1].clone(), padded[:, 2].clone()  # while_loop: no aliases
+
+
+def _fps_start(xyz: Tensor, num: int) -> tuple[Tensor, Tensor]:
+    """Distances (B, N + 1) to the chosen set (the padding column at -1 never wins unless N == 0)
+    and the index buffer (B, num), first pick point 0."""
+    b, n = xyz.shape[0], xyz.shape[1]
+    dist = torch.cat([xyz.new_full((b, n), float("inf")), xyz.new_full((b, 1), -1.0)], 1)
+    return dist, torch.zeros(b, num, dtype=torch.long, device=xyz.device)
+
+
+def _fps_step(rows, dist: Tensor, last: Tensor) -> tuple[Tensor, Tensor]:
+    """Distances updated with the point ``last`` (B,) and the next pick (B,)."""
+    x, y, z = rows
+    col = last[:, None]  # (B, 1)
+    d = (x - x.gather(1, col)) ** 2 + (y - y.gather(1, col)) ** 2 + (z - z.gather(1, col)) ** 2
+    dist = torch.minimum(dist, d)  # (B, N + 1) m^2
+    return dist, torch.argmax(dist, dim=1)
+
+
 def _fps_graph(xyz: Tensor, num: int) -> Tensor:
-    """FPS as a while_loop (exports to an ONNX Loop). xyz (N, 3) -> (num,) long."""
-    n = xyz.shape[0]
-    padded = torch.cat([xyz, xyz.new_zeros(1, 3)], 0)  # (N+1, 3); row N never wins unless N == 0
-    dist = torch.cat([xyz.new_full((n,), float("inf")), xyz.new_full((1,), -1.0)])  # (N+1,)
-    idx = torch.zeros(num, dtype=torch.long, device=xyz.device)  # (num,) first pick: point 0
-    step = torch.ones(1, dtype=torch.long, device=xyz.device)
-    last = torch.zeros(1, dtype=torch.long, device=xyz.device)
+    """FPS as a while_loop (exports to an ONNX Loop). xyz (B, N, 3) -> (B, num) long."""
+    rows = _rows(xyz)
+    dist, idx = _fps_start(xyz, num)
+    step = torch.ones((), dtype=torch.long, device=xyz.device)
+    last = torch.zeros(xyz.shape[0], dtype=torch.long, device=xyz.device)
 
     def cond(i: Tensor, last: Tensor, idx: Tensor, dist: Tensor) -> Tensor:
-        return (i < num).squeeze(0)
+        return i < num
 
     def body(i: Tensor, last: Tensor, idx: Tensor, dist: Tensor):
-        centre = torch.index_select(padded, 0, last)  # (1, 3)
-        dist = torch.minimum(dist, ((padded - centre) ** 2).sum(-1))  # (N+1,) m^2
-        nxt = torch.argmax(dist).reshape(1)
-        return i + 1, nxt, idx.scatter(0, i, nxt), dist
+        dist, nxt = _fps_step(rows, dist, last)
+        col = i.reshape(1, 1).expand(idx.shape[0], 1)  # (B, 1)
+        return i + 1, nxt, idx.scatter(1, col, nxt[:, None]), dist
 
     _, _, idx, _ = while_loop(cond, body, (step, last, idx, dist))
     return idx
 
 
 def _fps_eager(xyz: Tensor, num: int) -> Tensor:
-    """Same algorithm as _fps_graph as a Python loop (several times faster in eager mode)."""
-    n = xyz.shape[0]
-    padded = torch.cat([xyz, xyz.new_zeros(1, 3)], 0)
-    dist = torch.cat([xyz.new_full((n,), float("inf")), xyz.new_full((1,), -1.0)])
-    idx = torch.zeros(num, dtype=torch.long, device=xyz.device)
-    last = 0
+    """Same arithmetic as _fps_graph as a Python loop (several times faster in eager mode)."""
+    rows = _rows(xyz)
+    dist, idx = _fps_start(xyz, num)
+    last = idx[:, 0]
     for i in range(1, num):
-        dist = torch.minimum(dist, ((padded - padded[last]) ** 2).sum(-1))
-        last = int(torch.argmax(dist))
-        idx[i] = last
+        dist, last = _fps_step(rows, dist, last)
+        idx[:, i] = last
     return idx
 
 
 def farthest_point_sample(xyz: Tensor, num: int) -> Tensor:
-    """Indices of ``min(N, num)`` farthest points, starting from point 0.
+    """Indices of farthest points, starting from point 0.
 
-    xyz: (N, 3) metres. Returns (min(N, num),) long; an empty cloud gives an empty index.
+    xyz (N, 3) metres -> (min(N, num),) long (an empty cloud gives an empty index); or a batch
+    xyz (B, N, 3) with num <= N -> (B, num).
     """
-    if xyz.dim() != 2 or xyz.shape[1] != 3:
-        raise ValueError(f"farthest_point_sample: xyz must be (N, 3), got {tuple(xyz.shape)}")
-    idx = _fps_graph(xyz, num) if tracing() else _fps_eager(xyz, num)
-    return idx[: torch.sym_min(xyz.shape[0], num)]
+    if xyz.dim() not in (2, 3) or xyz.shape[-1] != 3:
+        raise ValueError(f"farthest_point_sample: xyz must be (N, 3) or (B, N, 3), got {tuple(xyz.shape)}")
+    if xyz.dim() == 3 and num > xyz.shape[1]:
+        raise ValueError(f"farthest_point_sample: {num} samples from {xyz.shape[1]} points per batch row")
+    batch = xyz if xyz.dim() == 3 else xyz[None]
+    idx = _fps_graph(batch, num) if tracing() else _fps_eager(batch, num)
+    return idx if xyz.dim() == 3 else idx[0, : torch.sym_min(xyz.shape[0], num)]
+
+
+_BAND = 2.0 ** -18  # candidate band of the GEMM distances, relative to |c|^2 + |x|^2 (>= 8 x rounding)
+
+
+def _candidates(xyz: Tensor, centres: Tensor) -> tuple[Tensor, Tensor]:
+    """GEMM squared distances (..., M, N) = |c|^2 + |x|^2 - 2 c x^T of centres (..., M, 3) and points
+    (..., N, 3), and their rounding band (..., 1, 1)."""
+    c2 = (centres * centres).sum(-1)  # (..., M)
+    x2 = (xyz * xyz).sum(-1)  # (..., N)
+    d2 = c2[..., :, None] + x2[..., None, :] - 2.0 * torch.matmul(centres, xyz.transpose(-1, -2))
+    top = torch.cat([c2, x2, c2.new_zeros(*c2.shape[:-1], 1)], -1).amax(-1)  # (...,) largest |.|^2
+    return d2, (2 * top * _BAND)[..., None, None]
+
+
+def _first_within(d2: Tensor, cand: Tensor, limit, n: int, k: int) -> Tensor:
+    """(..., k) the k smallest entries of ``cand`` (..., L) where d2 < limit, ascending; n pads."""
+    key = torch.where(d2 < limit, cand, torch.full_like(cand, n))
+    key = torch.cat([key, key.new_full((*key.shape[:-1], k), n)], -1)  # (..., L + k)
+    return torch.topk(key, k, dim=-1, largest=False, sorted=True).values
+
+
+def ball_queries(xyz: Tensor, centres: Tensor, radii: Sequence[float],
+                 nsamples: Sequence[int]) -> list[tuple[Tensor, Tensor]]:
+    """For every (radius, nsample): the first ``nsample`` points (in index order) strictly within
+    ``radius`` of each centre.
+
+    xyz (N, 3), centres (M, 3) metres, or batches of them (B, N, 3), (B, M, 3) -> [(idx
+    (..., M, nsample) long in [0, N], valid (..., M) bool)]. Slots beyond the neighbour count
+    repeat the first neighbour; a centre with no neighbour gets index N everywhere (the zero row
+    appended by ``group_points``). (One frame stays 2-D: a batch axis of 1 over a dynamic point
+    count makes the exporter guard on strides.)
+    """
+    n = xyz.shape[-2]
+    d2, band = _candidates(xyz, centres)  # (..., M, N), (..., 1, 1)
+    order = torch.arange(n, device=xyz.device).expand_as(d2)  # (..., M, N)
+    padded = torch.cat([xyz, xyz.new_zeros(*xyz.shape[:-2], 1, 3)], -2)  # (..., N + 1, 3)
+    offset = 0
+    if xyz.dim() == 3:  # rows of batch b start at b * (N + 1) in the flattened points
+        offset = (torch.arange(xyz.shape[0], device=xyz.device) * (n + 1))[:, None, None]
+    out = []
+    for radius, nsample in zip(radii, nsamples):
+        cand = _first_within(d2, order, radius * radius + band, n, 2 * nsample)  # (..., M, 2S)
+        near = take_rows(padded.reshape(-1, 3), cand + offset)  # (..., M, 2S, 3) candidate points
+        exact = ((centres[..., :, None, :] - near) ** 2).sum(-1)  # (..., M, 2S) m^2, the direct form
+        first = _first_within(exact, cand, radius * radius, n, nsample)  # (..., M, S)
+        head = first[..., :1].expand_as(first)  # first neighbour (n if none)
+        out.append((torch.where(first < n, first, head), first[..., 0] < n))
+    return out
 
 
 def ball_query(xyz: Tensor, centres: Tensor, radius: float, nsample: int) -> tuple[Tensor, Tensor]:
-    """First ``nsample`` points (in index order) within ``radius`` of each centre.
-
-    xyz: (N, 3), centres: (M, 3), metres. Returns idx (M, nsample) long in [0, N] and
-    valid (M,) bool. Slots beyond the neighbour count repeat the first neighbour; a centre with
-    no neighbour gets index N everywhere (the zero row appended by ``group_points``).
-    """
-    n = xyz.shape[0]
-    d2 = ((centres[:, None, :] - xyz[None, :, :]) ** 2).sum(-1)  # (M, N) m^2
-    order = torch.arange(n, device=xyz.device).expand_as(d2)  # (M, N)
-    key = torch.where(d2 < radius * radius, order, torch.full_like(order, n))  # (M, N)
-    key = torch.cat([key, key.new_full((key.shape[0], nsample), n)], 1)  # (M, N+nsample)
-    first, _ = torch.topk(key, nsample, dim=1, largest=False, sorted=True)  # (M, nsample)
-    valid = first[:, 0] < n  # (M,)
-    head = first[:, :1].expand_as(first)  # (M, nsample) first neighbour (n if none)
-    idx = torch.where(first < n, first, head)
-    return idx, valid
+    """:func:`ball_queries` of one radius: xyz (N, 3), centres (M, 3) -> idx (M, nsample) long in
+    [0, N], valid (M,) bool."""
+    return ball_queries(xyz, centres, (radius,), (nsample,))[0]
 
 
 def group_points(features: Tensor, idx: Tensor) -> Tensor:
@@ -101,8 +165,10 @@ def group_points(features: Tensor, idx: Tensor) -> Tensor:
 def three_nn_interpolate(unknown: Tensor, known: Tensor, known_feats: Tensor) -> Tensor:
     """Inverse-distance weighted mean of the 3 nearest known points' features.
 
-    unknown (N, 3), known (M, 3), known_feats (M, C) -> (N, C). Weights 1 / (d + 1e-8) with d
-    the Euclidean distance, normalised to sum 1. With fewer than 3 known points the missing
+    unknown (N, 3), known (M, 3), known_feats (M, C) -> (N, C). Weights 1 / max(d, 1e-8) with d
+    the Euclidean distance, normalised to sum 1 (a floor, not ``d + 1e-8``: coarse points are a
+    subset of the fine ones, so zero distances are the rule, and the ONNX optimizer folds
+    ``+ 1e-8`` away as ``+ 0``, leaving inf / inf). With fewer than 3 known points the missing
     neighbours are far padding points with zero features (no known point: zero output).
     """
     far = known.new_full((3, 3), _FAR)
@@ -110,7 +176,7 @@ def three_nn_interpolate(unknown: Tensor, known: Tensor, known_feats: Tensor) ->
     feats_p = torch.cat([known_feats, known_feats.new_zeros(3, known_feats.shape[1])], 0)
     d2 = ((unknown[:, None, :] - known_p[None, :, :]) ** 2).sum(-1)  # (N, M+3) m^2
     d2_nn, idx = torch.topk(d2, 3, dim=1, largest=False, sorted=True)  # (N, 3)
-    weight = 1.0 / (torch.sqrt(d2_nn) + 1e-8)  # (N, 3)
+    weight = 1.0 / torch.sqrt(d2_nn).clamp(min=1e-8)  # (N, 3)
     weight = weight / weight.sum(1, keepdim=True)
     neigh = group_points(feats_p, idx)  # (N, 3, C)
     return (neigh * weight[:, :, None]).sum(1)
@@ -150,8 +216,8 @@ class SetAbstraction(nn.Module):
 
     def forward(self, xyz: Tensor, feats: Tensor | None, centres: Tensor) -> Tensor:
         outs = []
-        for radius, nsample, mlp in zip(self.radii, self.nsamples, self.mlps):
-            idx, valid = ball_query(xyz, centres, radius, nsample)  # (M, S), (M,)
+        queries = ball_queries(xyz, centres, self.radii, self.nsamples)  # one distance GEMM
+        for (idx, valid), mlp in zip(queries, self.mlps):  # (M, S), (M,)
             rel = group_points(xyz, idx) - centres[:, None, :]  # (M, S, 3) metres
             grouped = rel if feats is None else torch.cat([rel, group_points(feats, idx)], -1)
             pooled = mlp(grouped).amax(1)  # (M, C_out)

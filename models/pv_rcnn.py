@@ -25,16 +25,16 @@ import torch
 from torch import Tensor, nn
 
 from harness.types import Sample
-from models.anchor_head import AnchorHead, HeadConfig
-from models.backbone2d import BEVBackbone
-from models.base import Detector
+from models.anchor_head import HeadConfig
+from models.base import Detector, mean_over_frames
+from models.box_frame import inside_boxes
 from models.image_branch import bilinear_sample
 from models.losses import sigmoid_focal_loss
 from models.pointnet2 import PointBatchNorm, SetAbstraction, farthest_point_sample
 from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITargetConfig,
                              finalize, propose, refine_loss, roi_support, sample_rois)
-from models.roi_pool import RoIGridPool, to_roi_frame
-from models.single_stage import frame_targets
+from models.roi_pool import RoIGridPool
+from models.single_stage import bev_stages, frame_targets
 from models.sparse import SparseTensor, height_compress
 from models.vfe import MeanVFE
 from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig, output_shape
@@ -169,8 +169,7 @@ def keypoint_targets(keypoints: Tensor, gt: Tensor, margin: float) -> Tensor:
     """(P,) float 1 where the keypoint lies inside a GT box enlarged by ``margin`` metres."""
     if gt.shape[0] == 0:
         return keypoints.new_zeros(keypoints.shape[0])
-    local = to_roi_frame(keypoints, gt)  # (G, P, 3)
-    return (local.abs() < gt[:, None, 3:6] / 2 + margin).all(-1).any(0).float()
+    return inside_boxes(keypoints, gt, 2 * margin).any(0).float()
 
 
 class PVRCNN(Detector):
@@ -183,13 +182,9 @@ class PVRCNN(Detector):
         self.grid = cfg.grid_of_voxels
         self.vfe = MeanVFE()
         self.backbone3d = VoxelBackbone(MeanVFE.out_channels, cfg.backbone3d)
-        d, h, w = output_shape(self.grid.shape, cfg.backbone3d)
-        bev_channels = cfg.backbone3d.out_channels * d
-        self.backbone2d = BEVBackbone(bev_channels, cfg.bev_layers, cfg.bev_strides,
-                                      cfg.bev_filters, cfg.bev_up_strides, cfg.bev_up_filters)
-        scale = cfg.bev_up_strides[0] / cfg.bev_strides[0]  # BEV output cells per input cell
-        self.rpn = AnchorHead(self.backbone2d.out_channels, (round(h * scale), round(w * scale)),
-                              cfg.pc_range, cfg.head)
+        self.backbone2d, self.rpn = bev_stages(self.grid, cfg.backbone3d, cfg.pc_range, cfg.head, cfg.bev_layers,
+                                               cfg.bev_strides, cfg.bev_filters, cfg.bev_up_strides, cfg.bev_up_filters)
+        bev_channels = cfg.backbone3d.out_channels * output_shape(self.grid.shape, cfg.backbone3d)[0]
         channels = [cfg.backbone3d.stem_channels] + [s.channels for s in cfg.backbone3d.stages]
         self.vsa = VoxelSetAbstraction(cfg, [channels[i] for i in cfg.levels], bev_channels)
         self.roi_grid = RoIGridPool(cfg.kp_channels, cfg.grid, cfg.grid_radii, cfg.grid_nsamples,
@@ -242,11 +237,7 @@ class PVRCNN(Detector):
     def loss(self, samples: list[Sample]) -> dict[str, Tensor]:
         """Mean over frames (frames run one by one: no batch axis)."""
         device = next(self.parameters()).device
-        totals: dict[str, Tensor] = {}
-        for sample in samples:
-            for k, v in self.frame_loss(sample, device).items():
-                totals[k] = totals.get(k, 0.0) + v / len(samples)
-        return totals
+        return mean_over_frames((self.frame_loss(s, device) for s in samples), len(samples))
 
 
 def build(profile: str = "compact") -> PVRCNN:

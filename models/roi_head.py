@@ -7,11 +7,7 @@
 - ``RefineHead``: shared MLP, then a confidence branch and a residual branch.
 - ``refine_loss``: the confidence (binary cross-entropy against a ramp of the RoI IoU, or a
   car / background label), smooth-L1 residuals and the corner loss on foreground RoIs.
-- ``ranked_topk`` / ``select_ranked``: top-k, score threshold and rotated NMS with ties ranked
-  by index, so torch and onnxruntime keep the same boxes.
-- ``nms_in_order``: greedy rotated NMS of boxes already in rank order; the rotated IoU runs only
-  on the pairs whose axis-aligned BEV bounds could overlap enough to suppress.
-- ``propose``: anchor-RPN proposals (decode + rotated NMS in the graph) that enter stage 2.
+- ``propose``: anchor-RPN proposals (decode + ``models.nms.select_ranked``) that enter stage 2.
 - ``finalize``: refined boxes of every RoI, then score threshold + NMS for the final output.
 """
 from __future__ import annotations
@@ -27,7 +23,8 @@ from torch import Tensor, nn
 
 from harness.boxes import iou_3d
 from models.anchor_head import AnchorHead
-from models.nms import nms_in_order
+from models.box_frame import inside_boxes, rotate_to_box_frame
+from models.nms import select_ranked
 from models.pointnet2 import PointBatchNorm
 
 
@@ -124,9 +121,8 @@ def encode_canonical(gt: Tensor, rois: Tensor) -> Tensor:
     heading is flipped by pi when it points against the RoI, so the heading residual lies in
     [-pi/2, pi/2] (a box is the same box either way).
     """
-    d = gt[:, 0:3] - rois[:, 0:3]  # (S, 3) metres
-    c, s = torch.cos(rois[:, 6]), torch.sin(rois[:, 6])
-    lx, ly = d[:, 0] * c + d[:, 1] * s, -d[:, 0] * s + d[:, 1] * c
+    d = rotate_to_box_frame((gt[:, 0:3] - rois[:, 0:3])[:, None], rois)[:, 0]  # (S, 3) metres
+    lx, ly = d[:, 0], d[:, 1]
     diag = torch.sqrt(rois[:, 3] ** 2 + rois[:, 4] ** 2)
     dyaw = wrap(gt[:, 6] - rois[:, 6])
     dyaw = torch.where(dyaw.abs() > math.pi / 2, wrap(dyaw + math.pi), dyaw)
@@ -245,41 +241,6 @@ class ProposalConfig:
     rois: int = 32  # proposals kept (stage-2 inputs)
 
 
-_SCORE_LEVELS = 2 ** 16  # score quantisation of the ranking key: coarser than float noise
-_MAX_INDEX = 2 ** 22  # more candidates than this would overflow the int64 key's index part
-
-
-def ranked_topk(scores: Tensor, k: int) -> Tensor:
-    """(min(k, A),) indices of scores (A,) in [0, 1] by descending score, ties by ascending index.
-
-    torch's CPU sort / topk and onnxruntime's TopK break ties differently, and the two runtimes'
-    scores of identical inputs (empty map cells) differ by float noise (~1e-7), so the ranking
-    key is the integer ``floor(score * 2^16) * 2^22 - index``: scores within 1.5e-5 rank by
-    index, and every candidate's key is distinct.
-    """
-    a = scores.shape[0]
-    torch._check(a < _MAX_INDEX)
-    level = torch.floor(scores.clamp(0.0, 1.0) * _SCORE_LEVELS).long()  # (A,)
-    key = level * _MAX_INDEX - torch.arange(a, device=scores.device)
-    return torch.topk(key, torch.sym_min(k, a)).indices
-
-
-def select_ranked(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: int,
-                  nms_iou: float, max_out: int) -> tuple[Tensor, Tensor]:
-    """Top ``nms_pre`` by score -> score threshold -> rotated NMS -> at most ``max_out``.
-
-    Equal scores are ranked by index (``ranked_topk``) and the NMS runs on that rank, so torch
-    and onnxruntime keep the same boxes even where many scores tie exactly (empty map regions).
-    boxes (A, 7), scores (A,) in [0, 1] -> (M, 7), (M,).
-    """
-    order = ranked_topk(scores, nms_pre)  # (K,)
-    boxes, scores = boxes[order], scores[order]
-    good = scores > score_thresh
-    boxes, scores = boxes[good], scores[good]
-    keep = nms_in_order(boxes, nms_iou)[:max_out]
-    return boxes[keep], scores[keep]
-
-
 def propose(head: AnchorHead, feats: Tensor, cfg: ProposalConfig) -> tuple[Tensor, Tensor]:
     """Stage-1 proposals from an anchor head: feats (1, C, H, W) -> rois (K, 7), scores (K,)."""
     cls, box, dirs = head(feats)
@@ -308,9 +269,8 @@ class OutputConfig:
 
 def roi_support(xyz: Tensor, rois: Tensor) -> Tensor:
     """(K,) bool: at least one of the points / voxel centres xyz (N, 3) lies inside the RoI (K, 7)."""
-    from models.point_roi_pool import inside_rois
     # a count, not .any(): ONNX ReduceMax over an empty axis is not False in onnxruntime
-    return inside_rois(xyz, rois).to(torch.int32).sum(dim=1) > 0
+    return inside_boxes(xyz, rois).to(torch.int32).sum(dim=1) > 0
 
 
 def final_scores(roi_scores: Tensor, logit: Tensor, rule: str) -> Tensor:
@@ -333,6 +293,6 @@ def finalize(rois: Tensor, roi_scores: Tensor, logit: Tensor, deltas: Tensor, cf
     scores = final_scores(roi_scores, logit, cfg.score)
     if support is not None:
         scores = scores * support.to(scores.dtype)
-    boxes, scores = select_ranked(rcnn_boxes, scores, cfg.score_thresh,
-                                  cfg.nms_pre, cfg.nms_iou, cfg.max_out)
+    boxes, scores = select_ranked(rcnn_boxes, scores, cfg.score_thresh, cfg.nms_pre, cfg.nms_iou,
+                                  cfg.max_out)
     return boxes, scores, rcnn_boxes

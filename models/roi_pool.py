@@ -11,19 +11,8 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
+from models.box_frame import inside_local, to_box_frame
 from models.pointnet2 import SetAbstraction
-
-
-def to_roi_frame(xyz: Tensor, rois: Tensor) -> Tensor:
-    """Points in every RoI's canonical frame (origin at the centre, x along the heading).
-
-    xyz (N, 3), rois (K, 7) -> (K, N, 3) metres.
-    """
-    d = xyz[None, :, :] - rois[:, None, 0:3]  # (K, N, 3)
-    c, s = torch.cos(rois[:, 6])[:, None], torch.sin(rois[:, 6])[:, None]  # (K, 1)
-    lx = d[..., 0] * c + d[..., 1] * s
-    ly = -d[..., 0] * s + d[..., 1] * c
-    return torch.stack([lx, ly, d[..., 2]], -1)
 
 
 def roi_voxel_pairs(rois: Tensor, xyz: Tensor, out_size: Sequence[int]) -> tuple[Tensor, Tensor]:
@@ -33,9 +22,9 @@ def roi_voxel_pairs(rois: Tensor, xyz: Tensor, out_size: Sequence[int]) -> tuple
     the flat cell index k * ox*oy*oz + (ix*oy + iy)*oz + iz, and point (P,) long, for the P
     (RoI, point) pairs with the point strictly inside the RoI.
     """
-    local = to_roi_frame(xyz, rois)  # (K, N, 3)
+    local = to_box_frame(xyz, rois)  # (K, N, 3)
     half = rois[:, None, 3:6] / 2  # (K, 1, 3)
-    inside = (local.abs() < half).all(-1)  # (K, N)
+    inside = inside_local(local, rois)  # (K, N)
     pair = torch.nonzero(inside)  # (P, 2): roi, point
     k, p = pair[:, 0], pair[:, 1]
     size = torch.tensor(list(out_size), dtype=xyz.dtype, device=xyz.device)  # (3,)

@@ -10,12 +10,11 @@ from dataclasses import dataclass
 
 from torch import Tensor
 
-from models.anchor_head import AnchorHead, HeadConfig
-from models.backbone2d import BEVBackbone
-from models.single_stage import AnchorDetector
+from models.anchor_head import HeadConfig
+from models.single_stage import AnchorDetector, bev_stages
 from models.sparse import SparseTensor, height_compress
 from models.vfe import MeanVFE
-from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig, output_shape
+from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig
 from models.voxelize import Grid, Voxels, hard_voxelize
 
 
@@ -62,12 +61,8 @@ class SECOND(AnchorDetector):
         self.grid = Grid(cfg.pc_range, cfg.voxel_size)
         self.vfe = MeanVFE()
         self.backbone3d = VoxelBackbone(MeanVFE.out_channels, cfg.backbone3d)
-        d, h, w = output_shape(self.grid.shape, cfg.backbone3d)
-        self.backbone2d = BEVBackbone(cfg.backbone3d.out_channels * d, cfg.layers, cfg.strides, cfg.filters,
-                                      cfg.upsample_strides, cfg.upsample_filters)
-        up = cfg.upsample_strides[0] / cfg.strides[0]  # BEV map -> head map scale
-        self.head = AnchorHead(self.backbone2d.out_channels, (round(h * up), round(w * up)), cfg.pc_range,
-                               cfg.head)
+        self.backbone2d, self.head = bev_stages(self.grid, cfg.backbone3d, cfg.pc_range, cfg.head, cfg.layers,
+                                                cfg.strides, cfg.filters, cfg.upsample_strides, cfg.upsample_filters)
 
     def voxelize(self, points: Tensor) -> Voxels:
         return hard_voxelize(points, self.grid, self.cfg.max_points, self.cfg.max_voxels)

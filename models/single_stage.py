@@ -1,4 +1,5 @@
-"""Shared skeleton of the one-stage anchor detectors (PointPillars, SECOND, DV-SECOND).
+"""Shared skeleton of the one-stage anchor detectors (PointPillars, SECOND, DV-SECOND), and the
+BEV first stage that every sparse-backbone detector builds the same way (``bev_stages``).
 
 A subclass defines ``bev(points) -> (1, C, H, W)`` (its voxel encoder and 3D stage) and owns
 ``backbone2d`` and ``head``; forward and loss then read: BEV map -> 2D backbone -> anchor head.
@@ -10,7 +11,11 @@ import torch
 from torch import Tensor
 
 from harness.types import Sample
-from models.base import Detector
+from models.anchor_head import AnchorHead, HeadConfig
+from models.backbone2d import BEVBackbone
+from models.base import Detector, mean_over_frames
+from models.voxel_backbone import VoxelBackboneConfig, output_shape
+from models.voxelize import Grid
 
 IGNORED_CLASSES = ("Van", "DontCare")  # KITTI: not Car, but not background either
 
@@ -35,12 +40,19 @@ class AnchorDetector(Detector):
         return self.head.detect(self.backbone2d(self.bev(points)))
 
     def loss(self, samples: list[Sample]) -> dict[str, Tensor]:
-        """Mean over frames of the head losses (frames run one by one: no batch axis)."""
+        """Mean over frames of the head losses."""
         device = next(self.parameters()).device
-        totals: dict[str, Tensor] = {}
-        for sample in samples:
-            points, gt, ignore = frame_targets(sample, device)
-            losses = self.head.loss(self.backbone2d(self.bev(points)), gt, ignore)
-            for k, v in losses.items():
-                totals[k] = totals.get(k, 0.0) + v / len(samples)
-        return totals
+        return mean_over_frames((self.head.loss(self.backbone2d(self.bev(points)), gt, ignore)
+                                 for points, gt, ignore in (frame_targets(s, device) for s in samples)), len(samples))
+
+
+def bev_stages(grid: Grid, backbone3d: VoxelBackboneConfig, pc_range, head: HeadConfig, layers, strides,
+               filters, upsample_strides, upsample_filters) -> tuple[BEVBackbone, AnchorHead]:
+    """The first stage after a sparse 3D backbone (SECOND, DV-SECOND, MVX-Net, Part-A2, PV-RCNN):
+    its z-collapsed BEV map (C * D channels) -> 2D backbone -> anchor head on the backbone's
+    output map (``upsample_strides[0] / strides[0]`` cells per BEV cell)."""
+    d, h, w = output_shape(grid.shape, backbone3d)
+    backbone2d = BEVBackbone(backbone3d.out_channels * d, layers, strides, filters, upsample_strides,
+                             upsample_filters)
+    up = upsample_strides[0] / strides[0]
+    return backbone2d, AnchorHead(backbone2d.out_channels, (round(h * up), round(w * up)), pc_range, head)

@@ -37,7 +37,7 @@ from torch import Tensor, nn
 
 from models.base import training_form
 from models.vfe import RowBatchNorm
-from models.voxelize import all_axes, unique_cells
+from models.voxelize import all_axes, take_rows, unique_cells
 
 
 def _triple(v) -> tuple[int, int, int]:
@@ -64,11 +64,6 @@ def _axis_column(v) -> Tensor:
 def _offset_rows(kernel) -> Tensor:
     """(3, K, 1) kernel offsets, axis-major."""
     return kernel_offsets(kernel).T[:, :, None]
-
-
-def take_rows(t: Tensor, index: Tensor) -> Tensor:
-    """``t[index]`` for an integer index of any shape, as one ``index_select`` (ONNX Gather)."""
-    return torch.index_select(t, 0, index.reshape(-1)).reshape(*index.shape, *t.shape[1:])
 
 
 @dataclass

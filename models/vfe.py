@@ -9,11 +9,13 @@ exporter turns into ONNX ScatterND / ScatterElements with a reduction.
 """
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor, nn
 
 from models.base import training_form
-from models.voxelize import Grid, Voxels
+from models.voxelize import Grid, Voxels, slot_in_voxel, take_rows
 
 
 def scatter_sum(values: Tensor, index: Tensor, n: int) -> Tensor:
@@ -43,26 +45,45 @@ def scatter_max_nonneg(values: Tensor, index: Tensor, n: int) -> Tensor:
     return out.scatter_reduce(0, idx, values, "amax", include_self=True)
 
 
-def voxel_max_nonneg(values: Tensor, voxels: Voxels) -> Tensor:
+DENSE_SLOTS = 8  # dynamic voxels: points per voxel that voxel_max_nonneg lays out densely
+
+
+def voxel_max_nonneg(values: Tensor, voxels: Voxels, slot: Tensor | None = None) -> Tensor:
     """(V, C) per-voxel maxima of NON-NEGATIVE point values (P, C).
 
-    With hard voxelization the points are first laid out as a dense (V, T, C) tensor by their
-    slot and reduced over T: a slot -> point table (scatter of P integers), then one row
-    gather, which onnxruntime runs much faster than a per-element ScatterElements max or a
-    ScatterND of whole rows; dynamic voxels fall back to :func:`scatter_max_nonneg`. Under
-    autograd the scatter form runs as well: same values and gradients, and its backward touches
-    P rows instead of the V * T slots of the dense layout (a PointPillars training step 1.27x).
+    The points are laid out as a dense (V, T, C) tensor by their rank in their voxel (``slot``)
+    and reduced over T: a slot -> point table (scatter of P integers), then one row gather,
+    which onnxruntime runs much faster than a per-element ScatterElements max or a ScatterND of
+    whole rows. Hard voxels carry their slots (T = max_points); for dynamic voxels ``slot`` is
+    :func:`dynamic_slots` (computed once per frame by the caller, or here), T = DENSE_SLOTS, and
+    the few points beyond (dense voxels near the sensor) are added by ScatterElements max. Under
+    autograd the scatter form runs: same values and gradients, and its backward touches P rows
+    instead of the V * T slots of the dense layout (a PointPillars training step 1.27x).
     """
-    if voxels.slot is None or training_form():
+    if training_form():
         return scatter_max_nonneg(values, voxels.point2voxel, voxels.num_voxels)
-    return slot_max(values, voxels)
+    p2v, v = voxels.point2voxel, voxels.num_voxels
+    if voxels.slot is not None:
+        t = voxels.max_points
+        return slot_max(values, p2v * t + voxels.slot, torch.arange(values.shape[0], dtype=torch.long), v, t)
+    slot = dynamic_slots(voxels) if slot is None else slot
+    dense = torch.nonzero(slot < DENSE_SLOTS)[:, 0]  # (Q,) points in the dense layout
+    rest = torch.nonzero(slot >= DENSE_SLOTS)[:, 0]  # (R,) the others (dense voxels near the sensor)
+    out = slot_max(values, take_rows(p2v * DENSE_SLOTS + slot, dense), dense, v, DENSE_SLOTS)  # (V, C)
+    idx = take_rows(p2v, rest)[:, None].expand(-1, values.shape[1])  # (R, C)
+    return out.scatter_reduce(0, idx, take_rows(values, rest), "amax", include_self=True)
 
 
-def slot_max(values: Tensor, voxels: Voxels) -> Tensor:
-    """:func:`voxel_max_nonneg` of hard voxels as a dense (V, T, C) gather reduced over T."""
-    t, (p, c) = voxels.max_points, values.shape
-    rows = torch.full((voxels.num_voxels * t,), p, dtype=torch.long)  # (V * T,) p = empty slot
-    rows = rows.scatter(0, voxels.point2voxel * t + voxels.slot, torch.arange(p, dtype=torch.long))
+def dynamic_slots(voxels: Voxels) -> Tensor:
+    """(P,) rank of each point of a dynamic voxelization in its voxel (input order)."""
+    return slot_in_voxel(voxels.point2voxel, voxels.num_voxels, math.prod(voxels.shape))
+
+
+def slot_max(values: Tensor, cells: Tensor, points: Tensor, num_voxels: int, t: int) -> Tensor:
+    """(V, C) maxima of values (P, C) >= 0 laid out densely as (V, T, C): row ``points`` (Q,) of
+    values fills cell ``cells`` (Q,) = voxel * T + slot; empty cells read a zero row."""
+    p, c = values.shape
+    rows = torch.full((num_voxels * t,), p, dtype=torch.long).scatter(0, cells, points)  # (V * T,)
     padded = torch.cat([values, values.new_zeros(1, c)])  # (P + 1, C)
     dense = torch.index_select(padded, 0, rows)  # (V * T, C)
     return dense.reshape(-1, t, c).amax(dim=1)
@@ -97,8 +118,8 @@ def decorate_points(voxels: Voxels, grid: Grid) -> Tensor:
     x - x_c, y - y_c, z - z_c]`` (``_m``: mean of the voxel's points, ``_c``: the voxel centre)."""
     pts, p2v = voxels.points, voxels.point2voxel
     mean = scatter_mean(pts[:, :3], p2v, voxels.num_voxels)  # (V, 3) metres
-    centre = grid.centres(voxels.coords)[p2v]  # (P, 3) metres
-    return torch.cat([pts[:, :4], pts[:, :3] - mean[p2v], pts[:, :3] - centre], dim=1)
+    centre = take_rows(grid.centres(voxels.coords), p2v)  # (P, 3) metres
+    return torch.cat([pts[:, :4], pts[:, :3] - take_rows(mean, p2v), pts[:, :3] - centre], dim=1)
 
 
 class PillarVFE(nn.Module):

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from models.base import tracing
+
 
 @dataclass(frozen=True)
 class Grid:
@@ -93,9 +95,15 @@ def range_mask(points: Tensor, pc_range) -> Tensor:
     return all_axes((xyz >= lo) & (xyz < hi))
 
 
+def take_rows(t: Tensor, index: Tensor) -> Tensor:
+    """``t[index]`` for an integer index of any shape, as one ``index_select`` (ONNX Gather;
+    advanced indexing exports as GatherND, which onnxruntime runs row by row)."""
+    return torch.index_select(t, 0, index.reshape(-1)).reshape(*index.shape, *t.shape[1:])
+
+
 def filter_range(points: Tensor, pc_range) -> Tensor:
     """(P, C) the points inside the range."""
-    return points[range_mask(points, pc_range)]
+    return take_rows(points, torch.nonzero(range_mask(points, pc_range))[:, 0])
 
 
 def _linear_index(points: Tensor, grid: Grid) -> Tensor:
@@ -121,7 +129,7 @@ def unique_cells(linear: Tensor, cells: int, return_inverse: bool = False):
         occupied = torch.zeros(cells, dtype=torch.long).scatter(0, linear, torch.ones_like(linear))  # (cells,)
         uniq = torch.nonzero(occupied)[:, 0]  # (V,) ascending
         if return_inverse:
-            out = uniq, (torch.cumsum(occupied, dim=0) - 1)[linear]  # (P,) rank of the entry's cell
+            out = uniq, take_rows(torch.cumsum(occupied, dim=0) - 1, linear)  # (P,) rank of the entry's cell
         else:
             out = uniq
     torch._check(uniq.shape[0] <= cells)  # keeps export's size bounds in int64
@@ -142,15 +150,41 @@ def dynamic_voxelize(points: Tensor, grid: Grid) -> Voxels:
     return Voxels(pts, inverse, _coords_of(uniq, grid.shape), grid.shape)
 
 
-def _slot_in_voxel(inverse: Tensor, num_voxels: int) -> Tensor:
-    """(P,) int64 rank of each point among the points of its voxel, in input order."""
+MAX_POINTS = 2 ** 20  # points per frame that the graph's int32 grouping keys hold (a scan: ~120k)
+_POS_BITS = 20  # bits of a point's position, < MAX_POINTS
+_DIGIT_BITS = 31 - _POS_BITS  # bits of a group index sorted per pass: digit * 2^20 + position < 2^31
+
+
+def group_order(group: Tensor, groups: int) -> Tensor:
+    """(P,) permutation that sorts ``group`` (P,) int64 in [0, groups) ascending, equal groups in
+    input order (a stable argsort).
+
+    In the graph, a least-significant-digit radix sort: each pass sorts by one 11-bit digit of the
+    group with the current position as tie-break, ``digit * P + position`` (distinct, < 2^31 for
+    P <= MAX_POINTS), so every TopK key fits int32 and no TopK tie rule is relied on (OpenVINO's
+    is not stable). Groups below 2^11 take one pass, below 2^22 two.
+    """
+    if not tracing():
+        return torch.sort(group, stable=True).indices
+    p = group.shape[0]
+    position = torch.arange(p, dtype=torch.long)  # (P,)
+    order = position
+    for shift in range(0, max(1, (groups - 1).bit_length()), _DIGIT_BITS):
+        digit = torch.remainder(torch.div(take_rows(group, order), 2 ** shift, rounding_mode="floor"), 2 ** _DIGIT_BITS)
+        order = take_rows(order, torch.argsort(digit * p + position))  # (P,) stable by this digit
+    return order
+
+
+def slot_in_voxel(inverse: Tensor, num_voxels: int, cells: int) -> Tensor:
+    """(P,) int64 rank of each point among the points of its voxel, in input order; ``inverse``
+    (P,) in [0, num_voxels), num_voxels <= cells."""
     p = inverse.shape[0]
     arange = torch.arange(p, dtype=torch.long)
-    order = torch.argsort(inverse * p + arange)  # points grouped by voxel, input order inside
+    order = group_order(inverse, min(cells, MAX_POINTS))  # points grouped by voxel, input order inside
     counts = torch.zeros(num_voxels, dtype=torch.long).index_add(0, inverse, torch.ones_like(inverse))
     starts = torch.cumsum(counts, dim=0) - counts  # (V,) first position of each voxel in `order`
     slot = torch.zeros(p, dtype=torch.long)
-    return slot.index_put((order,), arange - starts[inverse[order]])
+    return slot.scatter(0, order, arange - take_rows(starts, take_rows(inverse, order)))
 
 
 def _first_in_voxel(inverse: Tensor, num_voxels: int) -> Tensor:
@@ -160,11 +194,19 @@ def _first_in_voxel(inverse: Tensor, num_voxels: int) -> Tensor:
     return torch.full((num_voxels,), p, dtype=torch.long).scatter_reduce(0, inverse, arange, "amin")
 
 
+def first_points(inverse: Tensor, num_voxels: int) -> Tensor:
+    """(V,) input index of the first point of every voxel, ascending (``inverse`` (P,) is each
+    point's voxel): the points that come first in their voxel, found without a sort."""
+    first = _first_in_voxel(inverse, num_voxels)  # (V,)
+    is_first = take_rows(first, inverse) == torch.arange(inverse.shape[0], dtype=torch.long)  # (P,)
+    return torch.nonzero(is_first)[:, 0]
+
+
 def one_point_per_voxel(points: Tensor, grid: Grid) -> Tensor:
     """(P, C) points inside the grid's range -> (V, C) the first point (input order) of every
     occupied voxel, in input order."""
     uniq, inverse = unique_cells(_linear_index(points, grid), math.prod(grid.shape), return_inverse=True)
-    return points.index_select(0, torch.sort(_first_in_voxel(inverse, uniq.shape[0])).values)
+    return points.index_select(0, first_points(inverse, uniq.shape[0]))
 
 
 def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) -> Voxels:
@@ -175,13 +217,15 @@ def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) 
     """
     pts = filter_range(points, grid.pc_range)  # (P, 4)
     linear = _linear_index(pts, grid)  # (P,)
-    uniq, inverse = unique_cells(linear, math.prod(grid.shape), return_inverse=True)  # (V,), (P,)
+    cells = math.prod(grid.shape)
+    uniq, inverse = unique_cells(linear, cells, return_inverse=True)  # (V,), (P,)
     v = uniq.shape[0]
-    order = torch.argsort(_first_in_voxel(inverse, v))[:max_voxels]  # (V',) old voxel ids by first appearance
+    order = take_rows(inverse, first_points(inverse, v)[:max_voxels])  # (V',) old voxel ids by first appearance
     new_id = torch.full((v,), -1, dtype=torch.long)
     new_id = new_id.index_put((order,), torch.arange(order.shape[0], dtype=torch.long))  # (V,)
-    point_voxel = new_id[inverse]  # (P,) -1 for points of dropped voxels
-    slot = _slot_in_voxel(inverse, v)  # (P,)
+    point_voxel = take_rows(new_id, inverse)  # (P,) -1 for points of dropped voxels
+    slot = slot_in_voxel(inverse, v, cells)  # (P,)
     keep = (slot < max_points) & (point_voxel >= 0)
-    return Voxels(pts[keep], point_voxel[keep], _coords_of(uniq[order], grid.shape), grid.shape,
-                  slot[keep], max_points)
+    kept = torch.nonzero(keep)[:, 0]  # (P',)
+    return Voxels(take_rows(pts, kept), take_rows(point_voxel, kept), _coords_of(take_rows(uniq, order), grid.shape),
+                  grid.shape, take_rows(slot, kept), max_points)

@@ -76,3 +76,25 @@ def test_camera_model_without_image_size_is_refused(tmp_path):
     with pytest.raises(ExportError, match="image_hw"):
         export_onnx(_Camera(), tmp_path / "cam.onnx", {})
     assert not (tmp_path / "cam.onnx").exists()
+
+
+class _Loop(_Toy):
+    """A contract model with an ONNX Loop (farthest point sampling), whose traced body the exporter
+    names by a per-process call counter."""
+
+    def forward(self, points):
+        from models.pointnet2 import farthest_point_sample
+        pts = points[farthest_point_sample(points[:, :3], 8)]  # (M, 4)
+        boxes = torch.cat([pts[:, :3], torch.ones_like(pts[:, :3]), pts[:, 3:4]], dim=1)
+        return boxes, torch.sigmoid(self.score(pts))[:, 0]
+
+
+def test_export_is_byte_reproducible(tmp_path):
+    torch.manual_seed(0)
+    model = _Loop()
+    export_onnx(model, tmp_path / "a.onnx", {})
+    export_onnx(model, tmp_path / "b.onnx", {})
+    assert (tmp_path / "a.onnx").read_bytes() == (tmp_path / "b.onnx").read_bytes()
+    proto = onnx.load(str(tmp_path / "a.onnx"))
+    assert "Loop" in op_histogram(proto)
+    assert not any(node.metadata_props for node in proto.graph.node)  # no stack traces, no paths

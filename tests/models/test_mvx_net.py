@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from harness.types import Sample
-from models.export import export_onnx, run_onnx
+from models.export import export_onnx, integer_extremes, run_onnx
 from models.mvx_net import CONFIGS, MVXNet, build
 from models.voxelize import dynamic_voxelize
 
@@ -145,6 +145,8 @@ def test_onnx_matches_torch(tmp_path):
         np.testing.assert_allclose(got[1], ref[1], atol=1e-4)
         np.testing.assert_allclose(rows(got[0]), rows(ref[0]), atol=1e-3, rtol=1e-4)
     assert counts[0] > 0 and counts[-1] == 0  # boxes reach the outputs; none from an empty cloud
+    inputs = (clouds[0].astype(np.float32), s.image[None], s.lidar2img)
+    assert max(integer_extremes(path, *inputs).values()) < 2 ** 31  # OpenVINO computes int64 in int32
 
 
 def rows(boxes):

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from harness.types import Sample
-from models.export import export_onnx, run_onnx
+from models.export import export_onnx, integer_extremes, run_onnx
 from models.point_rcnn import (
     CONFIGS,
     PointRCNN,
@@ -15,7 +15,6 @@ from models.point_rcnn import (
     build,
     decode_bins,
     encode_bins,
-    interpolate_3nn,
 )
 
 CFG = CONFIGS["tiny"]
@@ -55,22 +54,6 @@ def test_encode_bins_matches_numpy():
         ref_bins, ref_res = numpy_encode(boxes[i].double().tolist(), xyz[i].double().tolist(), CFG)
         assert bins[i].tolist() == ref_bins
         np.testing.assert_allclose(res[i].numpy(), ref_res, atol=2e-5)
-
-
-def test_interpolate_3nn_matches_numpy_with_coincident_points():
-    rng = np.random.default_rng(3)
-    known = rng.uniform(-5, 5, (20, 3)).astype(np.float32)
-    feats = rng.normal(size=(20, 4)).astype(np.float32)
-    unknown = np.concatenate([known[:5], rng.uniform(-5, 5, (40, 3))]).astype(np.float32)
-    got = interpolate_3nn(*(torch.from_numpy(a) for a in (unknown, known, feats))).numpy()
-    for i, u in enumerate(unknown.astype(np.float64)):
-        d = np.sqrt(((known - u) ** 2).sum(1))
-        nn3 = np.argsort(d, kind="stable")[:3]
-        w = 1.0 / np.maximum(d[nn3], 1e-8)
-        np.testing.assert_allclose(got[i], (feats[nn3] * (w / w.sum())[:, None]).sum(0), rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(got[:5], feats[:5], atol=1e-5)  # a known point keeps its features
-    empty = interpolate_3nn(torch.from_numpy(unknown), torch.zeros(0, 3), torch.zeros(0, 4))
-    assert (empty == 0).all()
 
 
 def one_hot_prediction(bins, res, cfg):
@@ -233,3 +216,4 @@ def test_onnx_matches_torch(tmp_path):
         assert_same_rows(np.concatenate([got[2], got[3][:, None], got[4]], 1),
                          np.concatenate([ref[2], ref[3][:, None], ref[4]], 1))
         assert (len(ref[2]) > 0) == (len(cloud) > 0)  # RoIs from any cloud with points in range
+    assert max(integer_extremes(path, clouds[0].astype(np.float32)).values()) < 2 ** 31  # OpenVINO: int32

@@ -3,13 +3,9 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from models.point_roi_pool import (
-    RoISetAbstraction,
-    inside_rois,
-    roi_ball_query,
-    roi_farthest_point_sample,
-    roi_point_pool,
-)
+from models.box_frame import inside_boxes
+from models.point_roi_pool import RoISetAbstraction, roi_point_pool
+from models.pointnet2 import ball_queries, farthest_point_sample
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -67,7 +63,7 @@ def test_canonical_frame_of_a_rotated_box():
     assert not empty[0]
     np.testing.assert_allclose(pooled[0, 0].numpy(), [1.0, 0.0, 0.2], atol=1e-6)
     np.testing.assert_allclose(pooled[0, 1].numpy(), [1.0, 0.0, 0.2], atol=1e-6)  # cyclic repeat
-    assert inside_rois(xyz, rois).tolist() == [[True, False]]
+    assert inside_boxes(xyz, rois).tolist() == [[True, False]]
 
 
 class Pool(torch.nn.Module):
@@ -103,14 +99,14 @@ def numpy_ball_query(xyz, centre, radius, nsample):
     return (inside + [inside[0]] * nsample)[:nsample]
 
 
-def test_roi_fps_and_ball_query_match_numpy():
+def test_batched_fps_and_ball_query_match_numpy():
     rng = np.random.default_rng(5)
     xyz = rng.uniform(-2, 2, (6, 40, 3)).astype(np.float32)
-    idx = roi_farthest_point_sample(torch.from_numpy(xyz), 10).numpy()
+    idx = farthest_point_sample(torch.from_numpy(xyz), 10).numpy()
     for k in range(6):
         assert idx[k].tolist() == numpy_fps(xyz[k].astype(np.float64), 10)
     centres = xyz[np.arange(6)[:, None], idx]  # (6, 10, 3)
-    ball = roi_ball_query(torch.from_numpy(xyz), torch.from_numpy(centres), 1.2, 8).numpy()
+    ball = ball_queries(torch.from_numpy(xyz), torch.from_numpy(centres), (1.2,), (8,))[0][0].numpy()
     for k in range(6):
         for m in range(10):
             assert ball[k, m].tolist() == numpy_ball_query(xyz[k], centres[k, m], 1.2, 8)

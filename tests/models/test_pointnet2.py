@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from models.pointnet2 import (FeaturePropagation, PointBatchNorm, SetAbstraction, _fps_graph,
-                              ball_query, farthest_point_sample, group_points,
+                              ball_queries, ball_query, farthest_point_sample, group_points,
                               three_nn_interpolate)
 
 
@@ -48,8 +48,12 @@ def test_fps_matches_reference(n, num):
 
 def test_fps_graph_and_eager_paths_agree():
     xyz = torch.from_numpy(np.random.default_rng(1).normal(0, 5, (200, 3)).astype(np.float32))
-    np.testing.assert_array_equal(_fps_graph(xyz, 30).numpy(),
+    np.testing.assert_array_equal(_fps_graph(xyz[None], 30)[0].numpy(),
                                   farthest_point_sample(xyz, 30).numpy())
+    batch = xyz.reshape(4, 50, 3)
+    np.testing.assert_array_equal(_fps_graph(batch, 12).numpy(), farthest_point_sample(batch, 12).numpy())
+    for k in range(4):
+        np.testing.assert_array_equal(farthest_point_sample(batch, 12)[k].numpy(), fps_reference(batch[k].double().numpy(), 12))
 
 
 def test_fps_rejects_bad_shape():
@@ -67,6 +71,24 @@ def test_ball_query_matches_reference(n, m, radius, nsample):
     ref_idx, ref_valid = ball_query_reference(xyz, centres, radius, nsample)
     np.testing.assert_array_equal(idx.numpy(), ref_idx)
     np.testing.assert_array_equal(valid.numpy(), ref_valid)
+
+
+def test_ball_queries_far_from_the_origin_keep_the_direct_neighbours():
+    """The GEMM distances lose precision 80 m out; the exact check of the candidates restores the
+    neighbours of the direct (c - x)^2 sum, including points on the sphere to float precision."""
+    rng = np.random.default_rng(11)
+    xyz = (rng.uniform(-1.5, 1.5, (2, 600, 3)) + [75.0, -30.0, 1.0]).astype(np.float32)
+    centres = xyz[:, :40] + rng.normal(0, 0.05, (2, 40, 3)).astype(np.float32)
+    direction = rng.normal(size=(40, 3))
+    xyz[0, 100:140] = centres[0] + (0.8 * direction / np.linalg.norm(direction, axis=1, keepdims=True))
+    out = ball_queries(torch.from_numpy(xyz), torch.from_numpy(centres), (0.8, 1.6), (8, 16))
+    for (idx, valid), radius, nsample in zip(out, (0.8, 1.6), (8, 16)):
+        for b in range(2):
+            d2 = ((torch.from_numpy(centres[b])[:, None] - torch.from_numpy(xyz[b])[None]) ** 2).sum(-1)
+            for m in range(40):  # the direct float32 distances decide, as before the GEMM
+                inside = torch.nonzero(d2[m] < radius * radius)[:, 0].tolist()
+                assert idx[b, m].tolist() == (inside + inside[:1] * nsample)[:nsample]
+                assert bool(valid[b, m]) == bool(inside)
 
 
 def test_group_points_reads_zero_row_for_index_n():
@@ -89,11 +111,27 @@ def test_three_nn_interpolate_matches_reference(m):
     for i, u in enumerate(unknown):
         d = np.sqrt(((known - u) ** 2).sum(1))
         nn3 = np.argsort(d)[:3]
-        w = 1.0 / (d[nn3] + 1e-8)
+        w = 1.0 / np.maximum(d[nn3], 1e-8)
         # missing neighbours are padding points 1e4 m away with zero features
-        w_pad = np.full(3 - len(nn3), 1.0 / (np.linalg.norm(u - 1e4) + 1e-8))
+        w_pad = np.full(3 - len(nn3), 1.0 / np.linalg.norm(u - 1e4))
         expected[i] = (w[:, None] * feats[nn3]).sum(0) / (w.sum() + w_pad.sum())
     np.testing.assert_allclose(got.numpy(), expected, rtol=1e-4, atol=1e-5)
+
+
+def test_three_nn_interpolate_floors_coincident_points():
+    rng = np.random.default_rng(3)
+    known = rng.uniform(-5, 5, (20, 3)).astype(np.float32)
+    feats = rng.normal(size=(20, 4)).astype(np.float32)
+    unknown = np.concatenate([known[:5], rng.uniform(-5, 5, (40, 3))]).astype(np.float32)
+    got = three_nn_interpolate(*(torch.from_numpy(a) for a in (unknown, known, feats))).numpy()
+    for i, u in enumerate(unknown.astype(np.float64)):
+        d = np.sqrt(((known - u) ** 2).sum(1))
+        nn3 = np.argsort(d, kind="stable")[:3]
+        w = 1.0 / np.maximum(d[nn3], 1e-8)
+        np.testing.assert_allclose(got[i], (feats[nn3] * (w / w.sum())[:, None]).sum(0), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(got[:5], feats[:5], atol=1e-5)  # a known point keeps its features
+    empty = three_nn_interpolate(torch.from_numpy(unknown), torch.zeros(0, 3), torch.zeros(0, 4))
+    assert (empty == 0).all()
 
 
 def test_set_abstraction_matches_reference():

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from harness.boxes import points_in_boxes
-from models.export import export_onnx, run_onnx
+from models.export import export_onnx, integer_extremes, run_onnx
 from models.pv_rcnn import CONFIGS, PVRCNN, build, keypoint_targets, level_centres
 from models.sparse import SparseTensor
 
@@ -98,6 +98,13 @@ def test_export_keeps_every_step_in_the_graph(exported):
     _, _, hist = exported
     for op in ("Loop", "TopK", "ScatterElements", "Gather"):
         assert op in hist, op
+
+
+def test_integer_intermediates_fit_int32(exported, random_cloud):
+    """OpenVINO computes int64 in int32: no integer tensor of the graph may leave that range."""
+    _, path, _ = exported
+    points = random_cloud(np.random.default_rng(5), CONFIGS["tiny"].pc_range, 3000)
+    assert max(integer_extremes(path, points).values()) < 2 ** 31
 
 
 @pytest.mark.parametrize("n", [3000, 7, 0])

@@ -7,7 +7,7 @@ import torch
 
 from harness.dataset import synthetic_sample
 from models import zoo
-from models.export import example_inputs, export_checkpoint, run_onnx
+from models.export import example_inputs, export_checkpoint, integer_extremes, run_onnx
 
 NAMES = ("pointpillars", "second", "dv_second")
 
@@ -84,6 +84,12 @@ def test_onnxruntime_equals_torch(exported, n):
         assert boxes.shape[0] > 0  # boxes reach the outputs through threshold and NMS
     np.testing.assert_allclose(got_scores, scores.numpy(), atol=1e-4)
     np.testing.assert_allclose(_rows(got_boxes), _rows(boxes.numpy()), atol=1e-3, rtol=1e-4)
+
+
+def test_integer_intermediates_fit_int32(exported):
+    """OpenVINO computes int64 in int32: no integer tensor of the graph may leave that range."""
+    path, model = exported
+    assert max(integer_extremes(path, example_inputs(model, 4000, seed=1)[0].numpy()).values()) < 2 ** 31
 
 
 def _rows(boxes):

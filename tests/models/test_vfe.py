@@ -57,6 +57,26 @@ def test_voxel_max_uses_slots_of_hard_voxels():
             np.testing.assert_array_equal(got[i], vals[(vox.point2voxel == i).numpy()].numpy().max(0))
 
 
+def test_voxel_max_of_dynamic_voxels_matches_loop():
+    """Dynamic voxels: the first DENSE_SLOTS points of a voxel densely, the rest scattered."""
+    from models.vfe import DENSE_SLOTS, dynamic_slots, voxel_max_nonneg
+    from models.voxelize import dynamic_voxelize
+
+    rng = np.random.default_rng(3)
+    for n in (0, 40, 3000):  # 3000 points in 256 voxels: many beyond the dense slots
+        pts = torch.from_numpy((rng.random((n, 4)) * [8, 8, 4, 1] + [0, -4, -3, 0]).astype(np.float32))
+        vox = dynamic_voxelize(pts, GRID)
+        slot = dynamic_slots(vox)
+        vals = torch.from_numpy(rng.random((vox.points.shape[0], 5)).astype(np.float32))
+        with torch.no_grad():
+            got = voxel_max_nonneg(vals, vox).numpy()
+        assert n < 3000 or (slot >= DENSE_SLOTS).any()
+        for i in range(vox.num_voxels):
+            members = (vox.point2voxel == i).numpy()
+            np.testing.assert_array_equal(got[i], vals[members].numpy().max(0))
+            assert slot[members].tolist() == list(range(members.sum()))  # input order
+
+
 def test_voxel_max_training_form_matches_slot_form_with_gradients():
     from models.vfe import slot_max, voxel_max_nonneg
     from models.voxelize import hard_voxelize
@@ -68,7 +88,11 @@ def test_voxel_max_training_form_matches_slot_form_with_gradients():
         upstream = torch.from_numpy(rng.standard_normal((vox.num_voxels, 5)).astype(np.float32))
         base = torch.from_numpy(rng.random((vox.points.shape[0], 5)).astype(np.float32))
         outs, grads = [], []
-        for form in (voxel_max_nonneg, slot_max):  # under autograd voxel_max_nonneg scatters
+        def dense(v, vox):
+            t = vox.max_points
+            return slot_max(v, vox.point2voxel * t + vox.slot, torch.arange(len(v)), vox.num_voxels, t)
+
+        for form in (voxel_max_nonneg, dense):  # under autograd voxel_max_nonneg scatters
             vals = base.clone().requires_grad_(True)
             out = form(vals, vox)
             (out * upstream).sum().backward()

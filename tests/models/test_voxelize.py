@@ -88,3 +88,15 @@ def test_hard_voxelize_caps_like_loop():
         assert list(ref) == list(got)  # same voxels, same order
         for k in ref:
             assert np.array_equal(ref[k], got[k])  # same points, input order
+
+
+def test_group_order_radix_passes_equal_a_stable_sort(monkeypatch):
+    monkeypatch.setattr(voxelize, "tracing", lambda: True)  # the graph form: int32-sized radix passes
+    rng = np.random.default_rng(4)
+    for n, groups in ((0, 5), (1, 5), (3000, 7), (5000, 2 ** 11 + 5), (20000, 3_000_000)):
+        group = torch.from_numpy(rng.integers(0, groups, n))
+        got = voxelize.group_order(group, groups).numpy()
+        assert np.array_equal(got, np.argsort(group.numpy(), kind="stable"))
+    pts = _cloud(rng, 3000)
+    ref, got = _reference(pts, GRID, 2, 40), _as_dict(hard_voxelize(pts, GRID, 2, 40))
+    assert list(ref) == list(got) and all(np.array_equal(ref[k], got[k]) for k in ref)
