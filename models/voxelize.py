@@ -11,8 +11,6 @@ a dense tensor of the grid is laid out ``[D, H, W]`` like OpenPCDet's ``spatial_
 - :func:`hard_voxelize`: at most ``max_points`` points per voxel (the first ones in input order)
   and at most ``max_voxels`` voxels (those whose first point comes first), as in OpenPCDet /
   spconv's ``VoxelGenerator``.
-- :func:`one_point_per_voxel`: the first point of every occupied voxel (a density-levelling
-  point reduction, used by PointRCNN on near points).
 
 Both return :class:`Voxels`, a point list with a point -> voxel index, which every VFE in
 ``models/vfe.py`` consumes (a padded ``(V, T, C)`` tensor is never needed).
@@ -158,13 +156,6 @@ def _first_in_voxel(inverse: Tensor, num_voxels: int) -> Tensor:
     p = inverse.shape[0]
     arange = torch.arange(p, dtype=torch.long)
     return torch.full((num_voxels,), p, dtype=torch.long).scatter_reduce(0, inverse, arange, "amin")
-
-
-def one_point_per_voxel(points: Tensor, grid: Grid) -> Tensor:
-    """(P, C) points inside the grid's range -> (V, C) the first point (input order) of every
-    occupied voxel, in input order."""
-    uniq, inverse = unique_cells(_linear_index(points, grid), math.prod(grid.shape), return_inverse=True)
-    return points.index_select(0, torch.sort(_first_in_voxel(inverse, uniq.shape[0])).values)
 
 
 def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) -> Voxels:
