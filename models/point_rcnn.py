@@ -95,7 +95,7 @@ CONFIGS = {
         pool_samples=512, rcnn_sa=((128, 0.2, 16, (128, 128, 128)), (32, 0.4, 16, (128, 128, 256)),
                                     (None, 0.0, 0, (256, 256, 512))),
         refine_hidden=(256, 256),
-        targets=replace(CLS_TARGETS, per_frame=128, gt_jitter=0),
+        targets=replace(CLS_TARGETS, per_frame=128),
     ),
 }
 
