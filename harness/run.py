@@ -140,7 +140,8 @@ def _checkpoint_meta(ckpt: Path) -> dict:
     params = sum(int(np.prod(v.shape)) for v in state["state_dict"].values() if hasattr(v, "shape")
                  and v.dtype.is_floating_point)
     return {"params": params, "epochs": state.get("epoch"), "final_loss": state.get("final_loss"),
-            "val_ap": state.get("val_ap"), "train_seconds": state.get("train_seconds")}
+            "val_ap": state.get("val_ap"), "val_history": state.get("val_history"),
+            "train_seconds": state.get("train_seconds")}
 
 
 def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str,
@@ -196,7 +197,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
             "op_histogram": info.op_histogram,
             # the checkpoint's own training time (summed over resumed sessions), else the stage's
             "train": {"seconds": ck["train_seconds"] or tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"],
-                      "val_ap": ck["val_ap"]},
+                      "val_ap": ck["val_ap"], "val_history": ck["val_history"]},
             # latency measured by the probe with the machine to itself; the prediction stage's own
             # figures (all test frames, possibly beside another job) stay under "prediction"
             "runtime": {"prediction": ort, **{k: v for k, v in probe.items() if k != "seconds"},

@@ -7,7 +7,10 @@ camera models (``uses_camera`` -> images and lidar2img loaded) train through the
 Checkpoint (written atomically after every epoch; an existing one of the same model, profile,
 data and config is resumed): ``model``, ``profile``, ``config`` (asdict), ``state_dict``,
 ``epoch`` (completed epochs), ``epochs``, ``optimizer``, ``scheduler``, ``data_hash``,
-``config_hash``, ``final_loss``, ``train_seconds`` (summed over resumed sessions), ``seed``.
+``config_hash``, ``final_loss``, ``train_seconds`` (summed over resumed sessions), ``seed``, and
+``val_history``: after every epoch, the loss and the val AP40 on the first ``EPOCH_VAL_FRAMES`` val
+frames (the convergence check: has the schedule reached its plateau?). After the last epoch,
+``val_ap`` scores all val frames.
 """
 from __future__ import annotations
 
@@ -64,6 +67,9 @@ COMPACT_EPOCHS = {"pointpillars": 18, "second": 6, "dv_second": 6, "parta2": 8, 
                   "point_rcnn": 8, "mvx_net": 6}
 
 
+EPOCH_VAL_FRAMES = 20  # val frames scored after every epoch (a few seconds to a minute per model)
+
+
 def train_config(model: str, profile: str) -> TrainConfig:
     """The training schedule of ``model`` in ``profile`` (per-model epochs in the compact profile)."""
     if profile not in TRAIN_CONFIGS:
@@ -87,18 +93,18 @@ def _build(model: str, profile: str, seed: int) -> torch.nn.Module:
         return zoo.build(model, profile)
 
 
-def _resume(path: Path, net, optimizer, scheduler, ident: dict) -> tuple[int, float]:
-    """Completed epochs and training seconds of a matching checkpoint at ``path`` ((0, 0.0) when
-    absent / not matching)."""
+def _resume(path: Path, net, optimizer, scheduler, ident: dict) -> tuple[int, float, list]:
+    """Completed epochs, training seconds and val history of a matching checkpoint at ``path``
+    ((0, 0.0, []) when absent / not matching)."""
     if not path.is_file():
-        return 0, 0.0
+        return 0, 0.0, []
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
     if any(ckpt.get(k) != v for k, v in ident.items()):
-        return 0, 0.0  # another model, data set or config: start again
+        return 0, 0.0, []  # another model, data set or config: start again
     net.load_state_dict(ckpt["state_dict"])
     optimizer.load_state_dict(ckpt["optimizer"])
     scheduler.load_state_dict(ckpt["scheduler"])
-    return int(ckpt["epoch"]), float(ckpt.get("train_seconds") or 0.0)
+    return int(ckpt["epoch"]), float(ckpt.get("train_seconds") or 0.0), list(ckpt.get("val_history") or [])
 
 
 def _batches(n: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]:
@@ -242,6 +248,7 @@ class _Session:
     done: int  # epochs completed before this call
     spent: float  # training seconds before this call
     steps: int
+    history: list  # val_history of the completed epochs
 
 
 def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None, seed: int,
@@ -267,9 +274,9 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=tcfg.lr, total_steps=steps,
                                                     pct_start=0.4, div_factor=10, final_div_factor=100)
     path = out / "checkpoint.pt"
-    done, spent = _resume(path, net, optimizer, scheduler, ident)  # spent: s before this call
+    done, spent, history = _resume(path, net, optimizer, scheduler, ident)  # spent: s before this call
     return _Session(net, ds, database, tcfg, ident, {"config": asdict(cfg), "epochs": epochs, "seed": seed},
-                    optimizer, scheduler, path, done, spent, steps)
+                    optimizer, scheduler, path, done, spent, steps, history)
 
 
 def _bar(s: _Session, model: str, profile: str, show: bool) -> tqdm:
@@ -279,17 +286,42 @@ def _bar(s: _Session, model: str, profile: str, show: bool) -> tqdm:
 
 def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: int = 1) -> dict | None:
     """The remaining epochs; rank 0 writes the checkpoint after each. Returns the last state."""
-    start, state = time.perf_counter(), None
+    start, state, checking = time.perf_counter(), None, 0.0  # checking: seconds of the val checks
     for epoch in range(s.done, s.tcfg.epochs):
         loss = _run_epoch(s.net, s.ds, s.optimizer, s.scheduler, s.tcfg, seed, epoch, bar, aug, s.database,
                           rank=rank, world=world)
         if rank == 0:
+            t = time.perf_counter()
+            s.history.append(_epoch_check(s, epoch, loss, bar))
+            checking += time.perf_counter() - t
+            seconds = s.spent + time.perf_counter() - start - checking
             state = {**s.ident, **s.state, "state_dict": s.net.state_dict(), "epoch": epoch + 1,
                      "optimizer": s.optimizer.state_dict(), "scheduler": s.scheduler.state_dict(),
-                     "final_loss": loss, "train_seconds": s.spent + time.perf_counter() - start,
-                     "workers": world}
+                     "final_loss": loss, "train_seconds": seconds, "workers": world, "val_history": s.history}
             _atomic_save(state, s.path)
     return state
+
+
+def _epoch_check(s: _Session, epoch: int, loss: float, bar) -> dict:
+    """The epoch's entry of ``val_history``: its mean loss and, when the data has a val split, the
+    val AP40 on its first ``EPOCH_VAL_FRAMES`` frames (one line on the progress bar)."""
+    entry = {"epoch": epoch + 1, "loss": loss}
+    if has_split(s.ds.root, "val"):
+        ap = validation_ap(s.net, s.ds.root, EPOCH_VAL_FRAMES)
+        entry.update({k: ap[k] for k in ("3d_moderate", "bev_moderate", "3d_all", "frames")})
+        if not bar.disable:
+            bar.write(f"epoch {epoch + 1}/{s.tcfg.epochs}: loss {loss:.3f}, val AP40 3D moderate "
+                      f"{ap['3d_moderate']:.2f} on the first {ap['frames']} val frames")
+    return entry
+
+
+def convergence_line(history: list) -> str:
+    """``val_history`` in one line: val AP40 3D moderate after each epoch."""
+    aps = [f"{h['3d_moderate']:.1f}" for h in history if "3d_moderate" in h]
+    if not aps:
+        return "no val frames: no convergence check"
+    return (f"val AP40 3D moderate after each epoch (first {history[-1]['frames']} val frames): "
+            + " ".join(aps))
 
 
 def _worker(rank: int, world: int, tmp: str, threads: int, parent: int, args: tuple, progress: bool) -> None:
@@ -383,6 +415,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
             ap = validation_ap(s.net, data)
             _atomic_save({**state, "val_ap": ap}, s.path)
             if progress:
+                print(convergence_line(state.get("val_history") or []))
                 print(f"val AP40 @0.7 ({ap['frames']} frames): 3D moderate {ap['3d_moderate']:.2f}, "
                       f"BEV moderate {ap['bev_moderate']:.2f}, 3D all-distance {ap['3d_all']:.2f}, "
                       f"BEV all-distance {ap['bev_all']:.2f}")

@@ -17,7 +17,12 @@ def test_train_writes_checkpoint_and_resumes(tmp_path, capsys):
     assert state["config"]["pfn_channels"] == zoo.config("pointpillars", "tiny").pfn_channels
     assert len(state["data_hash"]) == 16 and len(state["config_hash"]) == 16 and "optimizer" in state
     assert np.isfinite(state["final_loss"])
-    assert "val AP40" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert "val AP40" in out.out
+    history = state["val_history"]  # the convergence check: one entry per epoch
+    assert [h["epoch"] for h in history] == [1, 2] and history[-1]["loss"] == state["final_loss"]
+    assert all(h["frames"] == 1 and 0 <= h["3d_moderate"] <= 100 for h in history)
+    assert "epoch 2/2: loss" in out.out and "val AP40 3D moderate after each epoch" in out.out
     mtime = ckpt.stat().st_mtime_ns
     train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=2, seed=0, progress=False)
     assert ckpt.stat().st_mtime_ns == mtime  # complete: resumed, nothing retrained
@@ -67,6 +72,18 @@ def test_a_training_stopped_before_its_validation_validates_when_run_again(tmp_p
     train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=1, progress=False)
     again = torch.load(ckpt, weights_only=False)
     assert again["val_ap"] == expected and again["epoch"] == 1
+
+
+def test_a_resumed_training_keeps_its_val_history(tmp_path, monkeypatch):
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=7, val=1)
+    train_stopped_after_epoch_1(monkeypatch, "pointpillars", data, tmp_path / "run", profile="tiny", seed=0,
+                                progress=False)
+    ckpt = tmp_path / "run" / "checkpoint.pt"
+    first = torch.load(ckpt, weights_only=False)["val_history"]
+    assert [h["epoch"] for h in first] == [1]
+    train("pointpillars", data, tmp_path / "run", profile="tiny", seed=0, progress=False)
+    history = torch.load(ckpt, weights_only=False)["val_history"]
+    assert [h["epoch"] for h in history] == [1, 2] and history[0] == first[0]
 
 
 def test_resumed_training_sums_its_seconds(tmp_path, monkeypatch):
