@@ -109,7 +109,7 @@ def cmd_evaluate(a) -> int:
 def cmd_run(a) -> int:
     from harness.run import run
     out = run(profile=a.profile, models=_csv(a.models) if a.models else None, out=Path(a.out) if a.out else None,
-              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs)
+              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, seeds=a.seeds)
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -190,6 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--runtime", choices=["onnxruntime", "openvino"], default="onnxruntime")
     s.add_argument("--jobs", type=_positive_int,
                    help="models trained/exported/predicted at once (default: the profile's, 2; 1 = one after the other)")
+    s.add_argument("--seeds", type=_positive_int,
+                   help="training draws per model, seeds 0..K-1 (default 1); the tables show their mean and range")
     s.set_defaults(func=cmd_run)
 
     s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report")

@@ -4,6 +4,12 @@ Every stage writes its files and a record ``RUN/.stages/<stage>.json`` holding t
 inputs and config; a stage whose record matches is skipped, so a second run only redoes what
 changed, and an interrupted run resumes (each stage also resumes inside itself: the simulator
 per frame, training per epoch, prediction per frame).
+
+Training draws: with ``seeds`` K > 1 every model is trained K times, with the training seeds
+``seed`` .. ``seed + K - 1``. Draw 0 keeps the single draw's files (``models/<name>/``,
+``models/<name>.onnx``, ``predictions/<name>/``, ``results/<name>.json``), so a run with
+``--seeds 2`` resumes a finished run of one draw; draw d > 0 writes the same files under the
+name ``<name>.seed<d>``. ``results.json`` then lists every draw under ``draws``.
 """
 from __future__ import annotations
 
@@ -45,6 +51,16 @@ class RunConfig:
     jobs: int = 2  # models trained/exported/predicted at once, each process with cores // jobs threads
     bootstrap: int = 200
     lidar_model: str = "physics"
+    seeds: int = 1  # training draws per model: seeds seed .. seed + seeds - 1
+
+
+def draw_tag(name: str, draw: int) -> str:
+    """The file and stage name of a model's training draw (the model's own name for draw 0)."""
+    return name if draw == 0 else f"{name}.seed{draw}"
+
+
+def _model_of(tag: str) -> str:
+    return tag.split(".seed")[0]
 
 
 PROFILES = {
@@ -113,23 +129,25 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
     return _file_digest(out / "meta" / "dataset.json")
 
 
-def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, train_hash: str) -> dict:
+def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, draw: int = 0) -> dict:
     from harness.train import train, train_config
     from models.export import export_checkpoint
     from models.zoo import config
-    ckpt_dir = run_dir / "models" / name
+    name = _model_of(tag)
+    ckpt_dir = run_dir / "models" / tag
     ckpt = ckpt_dir / "checkpoint.pt"
     schedule = asdict(train_config(name, cfg.model_profile))
-    tinfo = stages.run(f"train_{name}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
-                                          "schedule": schedule, "model_config": asdict(config(name, cfg.model_profile)),
-                                          "data": train_hash, "seed": cfg.seed},
+    seed = cfg.seed + draw
+    tinfo = stages.run(f"train_{tag}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
+                                         "schedule": schedule, "model_config": asdict(config(name, cfg.model_profile)),
+                                         "data": train_hash, "seed": seed},
                        lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt_dir,
                                                         profile=cfg.model_profile, epochs=cfg.epochs,
-                                                        device=cfg.device, seed=cfg.seed,
+                                                        device=cfg.device, seed=seed,
                                                         progress=stages.bars))},
                        outputs=[ckpt])
-    onnx_path = run_dir / "models" / f"{name}.onnx"
-    stages.run(f"export_{name}", {"checkpoint": _file_digest(ckpt)},
+    onnx_path = run_dir / "models" / f"{tag}.onnx"
+    stages.run(f"export_{tag}", {"checkpoint": _file_digest(ckpt)},
                lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=name))}, outputs=[onnx_path])
     return tinfo
 
@@ -207,14 +225,14 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
                                 val_predictions_dir=run_dir / "predictions_val" / name)}
 
 
-def _model_job(cfg: RunConfig, run_dir: Path, name: str, train_hash: str, sotif_hash: str, runtime: str,
-               progress: bool, threads: int | None, bars: bool) -> tuple[dict, dict]:
-    """Train, export, predict and evaluate one model (in the run's process or a job process)."""
+def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_hash: str, runtime: str,
+               progress: bool, threads: int | None, bars: bool, draw: int = 0) -> tuple[dict, dict]:
+    """Train, export, predict and evaluate one model's draw (in the run's process or a job process)."""
     if _INTERRUPTED:  # a job process that was interrupted takes no further job from the pool's queue
         raise KeyboardInterrupt("the run was interrupted")
-    stages = Stages(run_dir, progress, bars=bars, prefix=f"[{name}] " if not bars else "")
-    tinfo = _train_export(stages, cfg, run_dir, name, train_hash)
-    return tinfo, _predict_eval(stages, cfg, run_dir, name, sotif_hash, runtime, threads)
+    stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
+    tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
+    return tinfo, _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads)
 
 
 _INTERRUPTED = False  # set in a job process by its first SIGINT
@@ -253,14 +271,17 @@ def _exit_with_parent(parent: int, poll_s: float = 0.5) -> None:
     os._exit(1)
 
 
-def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str, sotif_hash: str, runtime: str,
+def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: str, sotif_hash: str, runtime: str,
                 progress: bool, t0: float) -> dict[str, tuple[dict, dict]]:
-    """``_model_job`` for every model: ``cfg.jobs`` processes at once with ``cores // jobs`` threads
-    each (the sparse and point-based networks gain little from a second thread in one step, so
-    two models side by side finish sooner than one after the other), or in this process."""
+    """``_model_job`` for every model and training draw (keyed by :func:`draw_tag`): ``cfg.jobs``
+    processes at once with ``cores // jobs`` threads each (the sparse and point-based networks gain
+    little from a second thread in one step, so two models side by side finish sooner than one
+    after the other), or in this process."""
     say = (lambda msg: print(msg, flush=True)) if progress else (lambda msg: None)
+    draws = {draw_tag(n, d): d for d in range(cfg.seeds) for n in models}
+    names = list(draws)
     jobs = max(1, min(cfg.jobs, len(names)))
-    order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(n, 10)) if jobs > 1 else list(names)
+    order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(_model_of(n), 10)) if jobs > 1 else list(names)
     done: dict[str, tuple[dict, dict]] = {}
     starts: dict[str, float] = {}  # a job starts when a slot frees: the pool takes them in order
     ends: dict[str, float] = {}
@@ -283,7 +304,8 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
         start_next(time.perf_counter())
         for i, name in enumerate(names, 1):
             say(f"== model {i}/{len(names)}: {name} (elapsed {time.perf_counter() - t0:.0f} s)")
-            finished(name, _model_job(cfg, run_dir, name, train_hash, sotif_hash, runtime, progress, None, progress))
+            finished(name, _model_job(cfg, run_dir, name, train_hash, sotif_hash, runtime, progress, None, progress,
+                                      draws[name]))
         return done
     import multiprocessing
     threads = max(1, (os.cpu_count() or 1) // jobs)
@@ -293,7 +315,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
         for _ in range(jobs):
             start_next(time.perf_counter())
         pending = {pool.submit(_model_job, cfg, run_dir, n, train_hash, sotif_hash, runtime, progress, threads,
-                               False): n for n in order}
+                               False, draws[n]): n for n in order}
         try:
             while pending:
                 ready, _ = wait(pending, return_when=FIRST_COMPLETED)
@@ -316,7 +338,7 @@ def _eta_seconds(order: list[str], starts: dict[str, float], ends: dict[str, flo
     ``_SAMPLE_MINUTES`` scaled by how long the finished ones took against theirs (jobs of under a
     minute, resumed from a previous run, do not count), the running ones less what they have run,
     and the queued ones go to whichever of the ``jobs`` slots frees first."""
-    minutes = {n: _SAMPLE_MINUTES.get(n, 10) for n in order}
+    minutes = {n: _SAMPLE_MINUTES.get(_model_of(n), 10) for n in order}
     timed = [n for n in ends if ends[n] - starts[n] >= 60]
     per_minute = (sum(ends[n] - starts[n] for n in timed) / sum(minutes[n] for n in timed)) if timed else 60.0
     running = [n for n in order if n in starts and n not in ends]
@@ -364,15 +386,20 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
 
 
 def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
-        config: RunConfig | None = None, jobs: int | None = None) -> Path:
+        config: RunConfig | None = None, jobs: int | None = None, seeds: int | None = None) -> Path:
     """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory.
 
     ``config`` replaces the profile's RunConfig (tests use a smaller one); ``jobs`` its number of
-    models run at once (not part of any stage key: changing it redoes nothing)."""
+    models run at once (not part of any stage key: changing it redoes nothing); ``seeds`` its
+    number of training draws per model."""
     from harness.report import render
     cfg, names, run_dir = resolve(profile, models, out, config)
     if jobs is not None:
         cfg = replace(cfg, jobs=jobs)
+    if seeds is not None:
+        if seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {seeds}")
+        cfg = replace(cfg, seeds=seeds)
     profile = cfg.profile
     run_dir.mkdir(parents=True, exist_ok=True)
     with folder_lock(run_dir, "run"):
@@ -400,9 +427,20 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
                            "stats": "tables/data_stats.csv"},
                   "stage_seconds": {n: i.get("seconds") for n, i in infos.items()},
                   "wall_seconds": _wall_span(infos)}
+        if cfg.seeds > 1:
+            result["draws"] = {n: [_draw_summary(run_dir, draw_tag(n, d), cfg.seed + d) for d in range(cfg.seeds)]
+                               for n in names}
         atomic_write_text(run_dir / "results.json", json.dumps(result, indent=1, default=str))
         render(run_dir)
     return run_dir
+
+
+def _draw_summary(run_dir: Path, tag: str, seed: int) -> dict:
+    """One training draw of a model: its seed, files, val AP and the headline AP of its predictions."""
+    ck = _checkpoint_meta(run_dir / "models" / tag / "checkpoint.pt")
+    res = json.loads((run_dir / "results" / f"{tag}.json").read_text())
+    return {"tag": tag, "seed": seed, "onnx": f"models/{tag}.onnx", "results": f"results/{tag}.json",
+            "val_ap": ck["val_ap"], "headline": res["headline"], "distance": res["distance"]}
 
 
 def _wall_span(infos: dict[str, dict]) -> float | None:
