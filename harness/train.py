@@ -170,7 +170,7 @@ def _data_parallel_backward(net, samples: list, batch_frames: int) -> float:
     parts = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) * share for p in params]
     parts += [b.reshape(-1) * share for b in stats]
     parts += [(b - s).reshape(-1).float() for b, s in zip(counters, before)]
-    parts.append(torch.tensor([float(p.grad is not None) for p in params] + [value * share]))
+    parts.append(torch.tensor([float(p.grad is not None) for p in params] + [value * share], device=parts[0].device))
     flat = torch.cat(parts)
     dist.all_reduce(flat)
     offset = 0
@@ -228,9 +228,31 @@ def uses_gt_sampling(net: Detector, aug: AugmentConfig) -> bool:
 def default_workers(model: str, profile: str, device: str = "cpu") -> int:
     """Data-parallel workers of ``sotif-bench train``: one per core, at most one per frame of a
     batch (on the CPU; a CUDA device trains in one process)."""
-    if device != "cpu":
+    if device != "cpu" or launched_world() > 1:  # under torchrun every process is one worker
         return 1
     return max(1, min(train_config(model, profile).batch_size, os.cpu_count() or 1))
+
+
+def launched_world() -> int:
+    """The number of processes of the torchrun launch this process belongs to (1 outside one)."""
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def _fit_launched(s: _Session, model: str, profile: str, seed: int, aug: AugmentConfig, progress: bool,
+                  device: str) -> dict | None:
+    """This process's part of a torchrun launch (env:// rendezvous; RANK and WORLD_SIZE from the
+    launcher, on one machine or several): ``_fit`` as one data-parallel worker, exactly as the
+    ``workers`` that ``--workers`` spawns. Rank 0 writes the checkpoint; returns its last state."""
+    rank, world = int(os.environ["RANK"]), launched_world()
+    dist.init_process_group("nccl" if device == "cuda" else "gloo", init_method="env://",
+                            timeout=timedelta(minutes=30))
+    try:
+        with _bar(s, model, profile, progress and rank == 0) as bar:
+            state = _fit(s, seed, aug, bar, rank, world)
+        dist.barrier()  # the checkpoint is written before any process goes on
+    finally:
+        dist.destroy_process_group()
+    return state
 
 
 @dataclass
@@ -389,20 +411,32 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     frames; the augmentation draws are per worker, and BatchNorm's running statistics are the
     workers' weighted mean. On 2 cores, 2 workers train PointPillars 1.33x as fast as one process
     with 2 threads, whose convolutions on one frame leave the second core half idle (README).
+    Under ``torchrun`` (several GPUs or machines) every launched process is one such worker.
     """
     data, out = Path(data), Path(out)
     batch_size = train_config(model, profile).batch_size
     if not 1 <= workers <= batch_size:
         raise ValueError(f"workers must be between 1 and the batch size {batch_size}, got {workers}")
+    world = launched_world()
+    if world > 1 and workers > 1:
+        raise ValueError(f"under torchrun every process is one data-parallel worker; got workers={workers}")
+    if world > batch_size:
+        raise ValueError(f"torchrun started {world} processes, more than the batch size {batch_size}")
     if workers > 1 and device != "cpu":
         raise ValueError(f"data-parallel workers train on the CPU; got workers={workers} with device {device!r}")
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device 'cuda' asked for, but torch {torch.__version__} sees no CUDA device here; "
                          "train with --device cpu")
+    if world > 1 and device == "cuda":
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
     with torch.device(device):
         s = _session(model, data, out, profile, epochs, seed, aug)
         s.net.to(device)
-        if workers > 1 and s.done < s.tcfg.epochs:
+        if world > 1:
+            state = _fit_launched(s, model, profile, seed, aug, progress, device)
+            if int(os.environ["RANK"]) != 0:
+                return s.path
+        elif workers > 1 and s.done < s.tcfg.epochs:
             state = _fit_data_parallel(s, workers, (model, data, out, profile, epochs, seed, aug), progress)
         else:
             with _bar(s, model, profile, progress) as bar:

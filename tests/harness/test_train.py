@@ -204,3 +204,23 @@ def test_train_refuses_bad_arguments_before_any_work(tmp_path, capsys, flags, me
                  "--out", str(tmp_path / "run"), *flags]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_torchrun_launch_trains_as_the_spawned_workers(tmp_path):
+    """`sotif-bench train` under torchrun (two local processes, env:// rendezvous, gloo) takes the
+    steps of `--workers 2`: same frames per worker, same draws, same all-reduce."""
+    import os
+    import subprocess
+    import sys
+    data = write_synthetic_dataset(tmp_path / "data", frames=5, seed=5, val=1)
+    spawned = train("pointpillars", data, tmp_path / "spawned", profile="tiny", epochs=1, progress=False, workers=2)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "harness.cli",
+           "train", "--model", "pointpillars", "--data", str(data), "--out", str(tmp_path / "launched"),
+           "--profile", "tiny", "--epochs", "1", "--workers", "1", "--quiet"]  # one process each: workers 2 only if launched
+    done = subprocess.run(cmd, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    a, b = (torch.load(p, weights_only=False) for p in (spawned, tmp_path / "launched" / "checkpoint.pt"))
+    assert b["workers"] == 2 and b["epoch"] == 1 and "val_ap" in b
+    assert b["final_loss"] == pytest.approx(a["final_loss"], rel=1e-5)
+    for k, v in a["state_dict"].items():
+        assert torch.allclose(v.float(), b["state_dict"][k].float(), rtol=1e-5, atol=1e-6), k
