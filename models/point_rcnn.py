@@ -113,7 +113,8 @@ def hash_rank(n: int, salt: int, device=None) -> Tensor:
     the golden ratio, so the indices with the lowest ranks spread evenly over any index range
     (a pseudo-random subset of a LiDAR scan, whose order runs along its rings). Index and
     multiplier are split into 10-bit halves so that every intermediate stays below 2**24:
-    OpenVINO computes int64 in int32, and its Mod of integers above 2**24 is off by a few units.
+    OpenVINO computes int64 in int32, and its integer products and remainders above 2**24 came out
+    a few units off.
     """
     i = torch.remainder(torch.arange(n, device=device) + salt, _HASH_MOD)  # (n,) < 2**20
     i_hi, i_lo = torch.div(i, 2 ** 10, rounding_mode="floor"), torch.remainder(i, 2 ** 10)  # (n,) < 2**10 each

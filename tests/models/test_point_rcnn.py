@@ -254,7 +254,7 @@ class _Sampling(torch.nn.Module):
 
 
 def test_points_of_interest_exports_exactly_for_large_clouds(tmp_path):
-    """onnxruntime and OpenVINO (int64 computed in int32, integer Mod inexact above 2**24) pick
+    """onnxruntime and OpenVINO (int64 computed in int32, integer arithmetic inexact above 2**24) pick
     the points torch picks from 300,000 (the hash's products would exceed 2**24 unsplit)."""
     import onnxruntime as ort
     module = _Sampling(PointRCNN(CFG)).eval()
