@@ -150,7 +150,7 @@ def cmd_evaluate(a) -> int:
 def cmd_run(a) -> int:
     from harness.run import run
     out = run(profile=a.profile, models=_nonempty_csv(a.models, "--models"), out=Path(a.out) if a.out else None,
-              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, lidar_model=a.lidar_model)
+              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, seeds=a.seeds, lidar_model=a.lidar_model)
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -260,6 +260,8 @@ def _add_run(sub, quiet) -> None:
     s.add_argument("--lidar-model", choices=["physics", "carla"], default=None,
                    help="physics: the weather changes the point cloud (default); carla: CARLA's weather-blind LiDAR, "
                         "the paper's protocol (the data sets, and so every stage after them, are made again)")
+    s.add_argument("--seeds", type=_positive_int,
+                   help="training draws per model, seeds 0..K-1 (default 1); the tables show their mean and range")
     s.set_defaults(func=cmd_run)
 
 

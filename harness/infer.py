@@ -264,7 +264,9 @@ class OnnxDetector:
             except ImportError:
                 raise ValueError("--runtime openvino needs the optional extra: pip install 'sotif-bench[openvino]'") from None
             try:
-                compiled = ov.Core().compile_model(str(path), "CPU")
+                # f32: on CPUs with AVX-512 BF16 OpenVINO's default inference precision is bf16, which
+                # would make every comparison with onnxruntime a comparison of precisions
+                compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_PRECISION_HINT": "f32"})
             except Exception as e:  # noqa: BLE001 - as for onnxruntime
                 raise ContractError(path, f"OpenVINO cannot load it: {runtime_reason(e)}") from e
             # an output tensor can carry several names in OpenVINO: keep the graph's output order

@@ -155,12 +155,18 @@ def _group_matrix(long: pd.DataFrame, column: str) -> pd.DataFrame:
 def _sections(run: tables.Run, t: dict) -> list[Section]:
     models = run.models
     c = sotif.constants()
+    draws = [Section("draws", "Training draws",
+                     "Each model trained with several seeds (`run --seeds K`): mean, lowest and highest over the "
+                     "draws, next to the width of the 95% bootstrap interval over frames of draw 0's headline AP "
+                     "in its narrowest and widest weather group. The other tables show draw 0.",
+                     [("", t["draws"], 1)], [])] if "draws" in t else []
     return [
         Section("main", "Headline AP per weather preset",
                 "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% bootstrap intervals "
                 "over frames (the SOTIF targets are far and small, so KITTI's moderate/hard filters would ignore "
                 "most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"],
                 figures_first=True),
+        *draws,
         Section("paper", "KITTI protocol (the paper's tables)",
                 "AP11 and AP40 at IoU 0.7 for 2D bbox, BEV, 3D and AOS with KITTI's easy/moderate/hard filters; "
                 "recall at the proposals (RoI) and refined boxes (RCNN) for two-stage models.",

@@ -5,6 +5,12 @@ inputs and config and of each file it wrote (``harness.stages``); a stage whose 
 whose files are as it wrote them is skipped, so a second run only redoes what changed or was
 damaged, and an interrupted run resumes (each stage also resumes inside itself: the simulator
 per frame, training per epoch, prediction per frame).
+
+Training draws: with ``seeds`` K > 1 every model is trained K times, with the training seeds
+``seed`` .. ``seed + K - 1``. Draw 0 keeps the single draw's files (``models/<name>/``,
+``models/<name>.onnx``, ``predictions/<name>/``, ``results/<name>.json``), so a run with
+``--seeds 2`` resumes a finished run of one draw; draw d > 0 writes the same files under the
+name ``<name>.seed<d>``. ``results.json`` then lists every draw under ``draws``.
 """
 from __future__ import annotations
 
@@ -46,6 +52,16 @@ class RunConfig:
     jobs: int = 2  # models trained/exported/predicted at once, each process with cores // jobs threads
     bootstrap: int = 200
     lidar_model: str = "physics"
+    seeds: int = 1  # training draws per model: seeds seed .. seed + seeds - 1
+
+
+def draw_tag(name: str, draw: int) -> str:
+    """The file and stage name of a model's training draw (the model's own name for draw 0)."""
+    return name if draw == 0 else f"{name}.seed{draw}"
+
+
+def _model_of(tag: str) -> str:
+    return tag.split(".seed")[0]
 
 
 PROFILES = {
@@ -74,23 +90,25 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
     return file_digest(out / "meta" / "dataset.json")
 
 
-def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, train_hash: str) -> dict:
+def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, draw: int = 0) -> dict:
     from harness.train import train, train_config
     from models.export import export_checkpoint
     from models.zoo import config
-    ckpt_dir = run_dir / "models" / name
+    name = _model_of(tag)
+    ckpt_dir = run_dir / "models" / tag
     ckpt = ckpt_dir / "checkpoint.pt"
     schedule = asdict(train_config(name, cfg.model_profile))
-    tinfo = stages.run(f"train_{name}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
-                                          "schedule": schedule, "model_config": asdict(config(name, cfg.model_profile)),
-                                          "data": train_hash, "seed": cfg.seed},
+    seed = cfg.seed + draw
+    tinfo = stages.run(f"train_{tag}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
+                                         "schedule": schedule, "model_config": asdict(config(name, cfg.model_profile)),
+                                         "data": train_hash, "seed": seed},
                        lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt_dir,
                                                         profile=cfg.model_profile, epochs=cfg.epochs,
-                                                        device=cfg.device, seed=cfg.seed,
-                                                        progress=stages.bars, on_epoch=stages.epoch_line(name)))},
+                                                        device=cfg.device, seed=seed,
+                                                        progress=stages.bars, on_epoch=stages.epoch_line(tag)))},
                        outputs=[ckpt])
-    onnx_path = run_dir / "models" / f"{name}.onnx"
-    stages.run(f"export_{name}", {"checkpoint": file_digest(ckpt)},
+    onnx_path = run_dir / "models" / f"{tag}.onnx"
+    stages.run(f"export_{tag}", {"checkpoint": file_digest(ckpt)},
                lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=name))}, outputs=[onnx_path])
     return tinfo
 
@@ -101,7 +119,8 @@ def _checkpoint_meta(ckpt: Path) -> dict:
     params = sum(int(np.prod(v.shape)) for v in state["state_dict"].values() if hasattr(v, "shape")
                  and v.dtype.is_floating_point)
     return {"params": params, "epochs": state.get("epoch"), "final_loss": state.get("final_loss"),
-            "val_ap": state.get("val_ap"), "train_seconds": state.get("train_seconds")}
+            "val_ap": state.get("val_ap"), "val_history": state.get("val_history"),
+            "train_seconds": state.get("train_seconds")}
 
 
 def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str,
@@ -158,7 +177,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
             "op_histogram": info.op_histogram, "provenance": info.provenance,
             # the checkpoint's own training time (summed over resumed sessions), else the stage's
             "train": {"seconds": ck["train_seconds"] or tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"],
-                      "val_ap": ck["val_ap"]},
+                      "val_ap": ck["val_ap"], "val_history": ck["val_history"]},
             # latency measured by the probe with the machine to itself; the prediction stage's own
             # figures (all test frames, possibly beside another job) stay under "prediction"
             "runtime": {"prediction": ort, **{k: v for k, v in probe.items() if k != "seconds"},
@@ -168,14 +187,14 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
                                 val_predictions_dir=run_dir / "predictions_val" / name)}
 
 
-def _model_job(cfg: RunConfig, run_dir: Path, name: str, train_hash: str, sotif_hash: str, runtime: str,
-               progress: bool, threads: int | None, bars: bool) -> tuple[dict, dict]:
-    """Train, export, predict and evaluate one model (in the run's process or a job process)."""
+def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_hash: str, runtime: str,
+               progress: bool, threads: int | None, bars: bool, draw: int = 0) -> tuple[dict, dict]:
+    """Train, export, predict and evaluate one model's draw (in the run's process or a job process)."""
     if _INTERRUPTED:  # a job process that was interrupted takes no further job from the pool's queue
         raise KeyboardInterrupt("the run was interrupted")
-    stages = Stages(run_dir, progress, bars=bars, prefix=f"[{name}] " if not bars else "")
-    tinfo = _train_export(stages, cfg, run_dir, name, train_hash)
-    return tinfo, _predict_eval(stages, cfg, run_dir, name, sotif_hash, runtime, threads)
+    stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
+    tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
+    return tinfo, _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads)
 
 
 _INTERRUPTED = False  # set in a job process by its first SIGINT
@@ -214,15 +233,18 @@ def _exit_with_parent(parent: int, poll_s: float = 0.5) -> None:
     os._exit(1)
 
 
-def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str, sotif_hash: str, runtime: str,
+def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: str, sotif_hash: str, runtime: str,
                 progress: bool, t0: float) -> dict[str, tuple[dict, dict]]:
-    """``_model_job`` for every model: ``cfg.jobs`` processes at once with ``cores // jobs`` threads
-    each (the sparse and point-based networks gain little from a second thread in one step, so
-    two models side by side finish sooner than one after the other), or in this process."""
+    """``_model_job`` for every model and training draw (keyed by :func:`draw_tag`): ``cfg.jobs``
+    processes at once with ``cores // jobs`` threads each (the sparse and point-based networks gain
+    little from a second thread in one step, so two models side by side finish sooner than one
+    after the other), or in this process."""
     say = (lambda msg: print(msg, flush=True)) if progress else (lambda msg: None)
+    draws = {draw_tag(n, d): d for d in range(cfg.seeds) for n in models}
+    names = list(draws)
     jobs = max(1, min(cfg.jobs, len(names)))
-    order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(n, 10)) if jobs > 1 else list(names)
-    minutes = {n: _SAMPLE_MINUTES.get(n, 10) * _work_left(cfg, run_dir, n) for n in names}
+    order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(_model_of(n), 10)) if jobs > 1 else list(names)
+    minutes = {n: _SAMPLE_MINUTES.get(_model_of(n), 10) * _work_left(cfg, run_dir, n) for n in names}
     done: dict[str, tuple[dict, dict]] = {}
     starts: dict[str, float] = {}  # a job starts when a slot frees: the pool takes them in order
     ends: dict[str, float] = {}
@@ -245,7 +267,8 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
         start_next(time.perf_counter())
         for i, name in enumerate(names, 1):
             say(f"== model {i}/{len(names)}: {name} (elapsed {time.perf_counter() - t0:.0f} s)")
-            finished(name, _model_job(cfg, run_dir, name, train_hash, sotif_hash, runtime, progress, None, progress))
+            finished(name, _model_job(cfg, run_dir, name, train_hash, sotif_hash, runtime, progress, None, progress,
+                                      draws[name]))
         return done
     import multiprocessing
     threads = max(1, (os.cpu_count() or 1) // jobs)
@@ -255,7 +278,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, names: list[str], train_hash: str
         for _ in range(jobs):
             start_next(time.perf_counter())
         pending = {pool.submit(_model_job, cfg, run_dir, n, train_hash, sotif_hash, runtime, progress, threads,
-                               False): n for n in order}
+                               False, draws[n]): n for n in order}
         try:
             while pending:
                 ready, _ = wait(pending, return_when=FIRST_COMPLETED)
@@ -295,11 +318,14 @@ def _work_left(cfg: RunConfig, run_dir: Path, name: str) -> float:
     """The share of a model's job still to do (0..1), from the epochs its checkpoint holds and the test
     frames already predicted: training is most of a job (about 85 % in the sample run), prediction
     most of the rest."""
-    import torch
     from harness.train import train_config
-    epochs = cfg.epochs or train_config(name, cfg.model_profile).epochs
+    from models.zoo import CheckpointError, read_checkpoint
+    epochs = cfg.epochs or train_config(_model_of(name), cfg.model_profile).epochs
     ckpt = run_dir / "models" / name / "checkpoint.pt"
-    done = torch.load(ckpt, map_location="cpu", weights_only=False).get("epoch", 0) if ckpt.is_file() else 0
+    try:
+        done = read_checkpoint(ckpt).get("epoch", 0) if ckpt.is_file() else 0
+    except CheckpointError:
+        done = 0  # the train stage says what is wrong with it
     test = run_dir / "data" / "sotif" / "ImageSets" / "test.txt"
     n_test = len(test.read_text().split()) if test.is_file() else 0
     predicted = len(list((run_dir / "predictions" / name).glob("[0-9]*.txt")))
@@ -341,18 +367,24 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
 
 
 def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
-        config: RunConfig | None = None, jobs: int | None = None, lidar_model: str | None = None) -> Path:
+        config: RunConfig | None = None, jobs: int | None = None, seeds: int | None = None,
+        lidar_model: str | None = None) -> Path:
     """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory.
 
     ``config`` replaces the profile's RunConfig (tests use a smaller one); ``jobs`` its number of
-    models run at once (not part of any stage key: changing it redoes nothing); ``lidar_model``
-    "carla" simulates every data set with CARLA's weather-blind LiDAR (the paper's protocol)."""
+    models run at once (not part of any stage key: changing it redoes nothing); ``seeds`` its
+    number of training draws per model; ``lidar_model`` "carla" simulates every data set with
+    CARLA's weather-blind LiDAR (the paper's protocol)."""
     from harness.report import render
     cfg, names, run_dir = resolve(profile, models, out, config)
     if jobs is not None:
         cfg = replace(cfg, jobs=jobs)
     if lidar_model is not None:
         cfg = replace(cfg, lidar_model=lidar_model)
+    if seeds is not None:
+        if seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {seeds}")
+        cfg = replace(cfg, seeds=seeds)
     profile = cfg.profile
     run_dir.mkdir(parents=True, exist_ok=True)
     with folder_lock(run_dir, "run"):
@@ -380,9 +412,20 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
                            "stats": "tables/data_stats.csv"},
                   "stage_seconds": {n: i.get("seconds") for n, i in infos.items()},
                   "wall_seconds": _wall_span(infos)}
+        if cfg.seeds > 1:
+            result["draws"] = {n: [_draw_summary(run_dir, draw_tag(n, d), cfg.seed + d) for d in range(cfg.seeds)]
+                               for n in names}
         atomic_write_text(run_dir / "results.json", json.dumps(result, indent=1, default=str))
         render(run_dir)
     return run_dir
+
+
+def _draw_summary(run_dir: Path, tag: str, seed: int) -> dict:
+    """One training draw of a model: its seed, files, val AP and the headline AP of its predictions."""
+    ck = _checkpoint_meta(run_dir / "models" / tag / "checkpoint.pt")
+    res = json.loads((run_dir / "results" / f"{tag}.json").read_text())
+    return {"tag": tag, "seed": seed, "onnx": f"models/{tag}.onnx", "results": f"results/{tag}.json",
+            "val_ap": ck["val_ap"], "headline": res["headline"], "distance": res["distance"]}
 
 
 def _wall_span(infos: dict[str, dict]) -> float | None:

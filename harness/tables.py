@@ -402,6 +402,33 @@ def to_markdown(df: pd.DataFrame, digits: int = 2) -> str:
     return "\n".join([head, sep, *body]) + "\n"
 
 
+def _spread(values: list) -> dict:
+    v = np.array([np.nan if x is None else x for x in values], dtype=float)
+    if not len(v) or np.isnan(v).all():
+        return {"mean": np.nan, "min": np.nan, "max": np.nan}
+    return {"mean": float(np.nanmean(v)), "min": float(np.nanmin(v)), "max": float(np.nanmax(v))}
+
+
+def draws_table(run: Run) -> pd.DataFrame:
+    """With several training draws per model (``run --seeds K``): per model, the mean and range over
+    the draws of the val AP40 3D moderate and the headline AP40 3D / BEV @0.7, next to the 95%
+    bootstrap interval over frames of draw 0's headline in its narrowest and widest weather
+    group (the spread a reader sees without draws)."""
+    rows = []
+    for name, draws in (run.summary.get("draws") or {}).items():
+        ci = [row["headline_ci95"]["3d"] for row in group_rows(run.results.get(name, {}), "weather").values()]
+        widths = [hi - lo for lo, hi in ci]
+        row = {"model": name, "draws": len(draws), "seeds": ",".join(str(d["seed"]) for d in draws)}
+        for key, values in (("val AP3D mod", [_get(d, "val_ap", "3d_moderate", default=None) for d in draws]),
+                            ("AP3D", [_get(d, "headline", "3d", "0.7", default=None) for d in draws]),
+                            ("AP BEV", [_get(d, "headline", "bev", "0.7", default=None) for d in draws])):
+            row.update({f"{key} {k}": v for k, v in _spread(values).items()})
+        row["AP3D draw-0 CI95 width, weather min"] = min(widths) if widths else np.nan
+        row["AP3D draw-0 CI95 width, weather max"] = max(widths) if widths else np.nan
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
 def build_tables(run: Run) -> dict[str, pd.DataFrame]:
     """Every table of the report, by name (empty DataFrames for parts the run does not have)."""
     weather = group_table(run.results, "weather")
@@ -416,6 +443,8 @@ def build_tables(run: Run) -> dict[str, pd.DataFrame]:
         "sotif": sotif, "sotif_matrix": sotif_matrix(sotif), "runtime": runtime_table(run.summary),
         "data_by_weather": data_table(run.meta, run.frame_stats), "stages": stage_table(run.summary),
         "lidar_fidelity": fidelity_table(run.meta),
+        # only with several training draws: a run of one draw writes the files it always wrote
+        **({"draws": draws_table(run)} if run.summary.get("draws") else {}),
     }
     return {"overview": overview_table(run, t), **t}
 

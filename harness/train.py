@@ -7,7 +7,10 @@ camera models (``uses_camera`` -> images and lidar2img loaded) train through the
 Checkpoint (written atomically after every epoch; an existing one of the same model, profile,
 data and config is resumed): ``model``, ``profile``, ``config`` (asdict), ``state_dict``,
 ``epoch`` (completed epochs), ``epochs``, ``optimizer``, ``scheduler``, ``data_hash``,
-``config_hash``, ``final_loss``, ``train_seconds`` (summed over resumed sessions), ``seed``.
+``config_hash``, ``final_loss``, ``train_seconds`` (summed over resumed sessions), ``seed``, and
+``val_history``: after every epoch, the loss and the val AP40 on the first ``EPOCH_VAL_FRAMES`` val
+frames (the convergence check: has the schedule reached its plateau?). After the last epoch,
+``val_ap`` scores all val frames.
 """
 from __future__ import annotations
 
@@ -64,13 +67,24 @@ COMPACT_EPOCHS = {"pointpillars": 18, "second": 6, "dv_second": 6, "parta2": 8, 
                   "point_rcnn": 8, "mvx_net": 6}
 
 
+EPOCH_VAL_FRAMES = 20  # val frames scored after every epoch (a few seconds to a minute per model)
+
+
+# The kitti profile's peak learning rate where OpenPCDet's KITTI config differs from 3e-3
+# (parta2.yaml, pv_rcnn.yaml, pointrcnn.yaml: OPTIMIZATION.LR 0.01)
+KITTI_LR = {"parta2": 0.01, "pv_rcnn": 0.01, "point_rcnn": 0.01}
+
+
 def train_config(model: str, profile: str) -> TrainConfig:
-    """The training schedule of ``model`` in ``profile`` (per-model epochs in the compact profile)."""
+    """The training schedule of ``model`` in ``profile`` (per-model epochs in the compact profile,
+    per-model learning rates in the kitti profile)."""
     if profile not in TRAIN_CONFIGS:
         raise ValueError(f"unknown profile {profile!r}; expected one of {', '.join(TRAIN_CONFIGS)}")
     tcfg = TRAIN_CONFIGS[profile]
     if profile == "compact" and model in COMPACT_EPOCHS:
         tcfg = replace(tcfg, epochs=COMPACT_EPOCHS[model])
+    if profile == "kitti" and model in KITTI_LR:
+        tcfg = replace(tcfg, lr=KITTI_LR[model])
     return tcfg
 
 
@@ -87,18 +101,18 @@ def _build(model: str, profile: str, seed: int) -> torch.nn.Module:
         return zoo.build(model, profile)
 
 
-def _resume(path: Path, net, optimizer, scheduler, ident: dict) -> tuple[int, float]:
-    """Completed epochs and training seconds of a matching checkpoint at ``path`` ((0, 0.0) when
-    absent / not matching)."""
+def _resume(path: Path, net, optimizer, scheduler, ident: dict) -> tuple[int, float, list]:
+    """Completed epochs, training seconds and val history of a matching checkpoint at ``path``
+    ((0, 0.0, []) when absent / not matching)."""
     if not path.is_file():
-        return 0, 0.0
+        return 0, 0.0, []
     ckpt = zoo.read_checkpoint(path)
     if any(ckpt.get(k) != v for k, v in ident.items()):
-        return 0, 0.0  # another model, data set or config: start again
+        return 0, 0.0, []  # another model, data set or config: start again
     net.load_state_dict(ckpt["state_dict"])
     optimizer.load_state_dict(ckpt["optimizer"])
     scheduler.load_state_dict(ckpt["scheduler"])
-    return int(ckpt["epoch"]), float(ckpt.get("train_seconds") or 0.0)
+    return int(ckpt["epoch"]), float(ckpt.get("train_seconds") or 0.0), list(ckpt.get("val_history") or [])
 
 
 def _replaceable_checkpoint(path: Path, model: str, force: bool) -> None:
@@ -181,7 +195,7 @@ def _data_parallel_backward(net, samples: list, batch_frames: int) -> float:
     parts = [(p.grad if p.grad is not None else torch.zeros_like(p)).reshape(-1) * share for p in params]
     parts += [b.reshape(-1) * share for b in stats]
     parts += [(b - s).reshape(-1).float() for b, s in zip(counters, before)]
-    parts.append(torch.tensor([float(p.grad is not None) for p in params] + [value * share]))
+    parts.append(torch.tensor([float(p.grad is not None) for p in params] + [value * share], device=parts[0].device))
     flat = torch.cat(parts)
     dist.all_reduce(flat)
     offset = 0
@@ -239,9 +253,31 @@ def uses_gt_sampling(net: Detector, aug: AugmentConfig) -> bool:
 def default_workers(model: str, profile: str, device: str = "cpu") -> int:
     """Data-parallel workers of ``sotif-bench train``: one per core, at most one per frame of a
     batch (on the CPU; a CUDA device trains in one process)."""
-    if device != "cpu":
+    if device != "cpu" or launched_world() > 1:  # under torchrun every process is one worker
         return 1
     return max(1, min(train_config(model, profile).batch_size, os.cpu_count() or 1))
+
+
+def launched_world() -> int:
+    """The number of processes of the torchrun launch this process belongs to (1 outside one)."""
+    return int(os.environ.get("WORLD_SIZE", "1"))
+
+
+def _fit_launched(s: _Session, model: str, profile: str, seed: int, aug: AugmentConfig, progress: bool,
+                  device: str) -> dict | None:
+    """This process's part of a torchrun launch (env:// rendezvous; RANK and WORLD_SIZE from the
+    launcher, on one machine or several): ``_fit`` as one data-parallel worker, exactly as the
+    ``workers`` that ``--workers`` spawns. Rank 0 writes the checkpoint; returns its last state."""
+    rank, world = int(os.environ["RANK"]), launched_world()
+    dist.init_process_group("nccl" if device == "cuda" else "gloo", init_method="env://",
+                            timeout=timedelta(minutes=30))
+    try:
+        with _bar(s, model, profile, progress and rank == 0) as bar:
+            state = _fit(s, seed, aug, bar, rank, world)
+        dist.barrier()  # the checkpoint is written before any process goes on
+    finally:
+        dist.destroy_process_group()
+    return state
 
 
 @dataclass
@@ -259,6 +295,7 @@ class _Session:
     done: int  # epochs completed before this call
     spent: float  # training seconds before this call
     steps: int
+    history: list  # val_history of the completed epochs
 
 
 def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None, seed: int,
@@ -284,9 +321,9 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=tcfg.lr, total_steps=steps,
                                                     pct_start=0.4, div_factor=10, final_div_factor=100)
     path = out / "checkpoint.pt"
-    done, spent = _resume(path, net, optimizer, scheduler, ident)  # spent: s before this call
+    done, spent, history = _resume(path, net, optimizer, scheduler, ident)  # spent: s before this call
     return _Session(net, ds, database, tcfg, ident, {"config": asdict(cfg), "epochs": epochs, "seed": seed},
-                    optimizer, scheduler, path, done, spent, steps)
+                    optimizer, scheduler, path, done, spent, steps, history)
 
 
 def _bar(s: _Session, model: str, profile: str, show: bool) -> tqdm:
@@ -298,19 +335,44 @@ def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: 
          on_epoch=None) -> dict | None:
     """The remaining epochs; rank 0 writes the checkpoint after each and calls
     ``on_epoch(epochs done, epochs, mean seconds of this call's epochs)``. Returns the last state."""
-    start, state = time.perf_counter(), None
+    start, state, checking = time.perf_counter(), None, 0.0  # checking: seconds of the val checks
     for epoch in range(s.done, s.tcfg.epochs):
         loss = _run_epoch(s.net, s.ds, s.optimizer, s.scheduler, s.tcfg, seed, epoch, bar, aug, s.database,
                           rank=rank, world=world)
         if rank == 0:
+            t = time.perf_counter()
+            s.history.append(_epoch_check(s, epoch, loss, bar))
+            checking += time.perf_counter() - t
+            seconds = s.spent + time.perf_counter() - start - checking
             state = {**s.ident, **s.state, "state_dict": s.net.state_dict(), "epoch": epoch + 1,
                      "optimizer": s.optimizer.state_dict(), "scheduler": s.scheduler.state_dict(),
-                     "final_loss": loss, "train_seconds": s.spent + time.perf_counter() - start,
-                     "workers": world}
+                     "final_loss": loss, "train_seconds": seconds, "workers": world, "val_history": s.history}
             _atomic_save(state, s.path)
             if on_epoch is not None:
                 on_epoch(epoch + 1, s.tcfg.epochs, (time.perf_counter() - start) / (epoch + 1 - s.done))
     return state
+
+
+def _epoch_check(s: _Session, epoch: int, loss: float, bar) -> dict:
+    """The epoch's entry of ``val_history``: its mean loss and, when the data has a val split, the
+    val AP40 on its first ``EPOCH_VAL_FRAMES`` frames (one line on the progress bar)."""
+    entry = {"epoch": epoch + 1, "loss": loss}
+    if has_split(s.ds.root, "val"):
+        ap = validation_ap(s.net, s.ds.root, EPOCH_VAL_FRAMES)
+        entry.update({k: ap[k] for k in ("3d_moderate", "bev_moderate", "3d_all", "frames")})
+        if not bar.disable:
+            bar.write(f"epoch {epoch + 1}/{s.tcfg.epochs}: loss {loss:.3f}, val AP40 3D moderate "
+                      f"{ap['3d_moderate']:.2f} on the first {ap['frames']} val frames")
+    return entry
+
+
+def convergence_line(history: list) -> str:
+    """``val_history`` in one line: val AP40 3D moderate after each epoch."""
+    aps = [f"{h['3d_moderate']:.1f}" for h in history if "3d_moderate" in h]
+    if not aps:
+        return "no val frames: no convergence check"
+    return (f"val AP40 3D moderate after each epoch (first {history[-1]['frames']} val frames): "
+            + " ".join(aps))
 
 
 def _worker(rank: int, world: int, tmp: str, threads: int, parent: int, args: tuple, progress: bool) -> None:
@@ -380,21 +442,33 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     workers' weighted mean. On 2 cores, 2 workers train PointPillars 1.33x as fast as one process
     with 2 threads, whose convolutions on one frame leave the second core half idle (docs/performance.md).
     ``on_epoch`` (one process only) is called after each epoch's checkpoint, as in ``_fit``.
+    Under ``torchrun`` (several GPUs or machines) every launched process is one such worker.
     """
     data, out = Path(data), Path(out)
     batch_size = train_config(model, profile).batch_size
     if not 1 <= workers <= batch_size:
         raise ValueError(f"workers must be between 1 and the batch size {batch_size}, got {workers}")
+    world = launched_world()
+    if world > 1 and workers > 1:
+        raise ValueError(f"under torchrun every process is one data-parallel worker; got workers={workers}")
+    if world > batch_size:
+        raise ValueError(f"torchrun started {world} processes, more than the batch size {batch_size}")
     if workers > 1 and device != "cpu":
         raise ValueError(f"data-parallel workers train on the CPU; got workers={workers} with device {device!r}")
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device 'cuda' asked for, but torch {torch.__version__} sees no CUDA device here; "
                          "train with --device cpu")
     _replaceable_checkpoint(out / "checkpoint.pt", model, force)
+    if world > 1 and device == "cuda":
+        torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
     with torch.device(device):
         s = _session(model, data, out, profile, epochs, seed, aug)
         s.net.to(device)
-        if workers > 1 and s.done < s.tcfg.epochs:
+        if world > 1:
+            state = _fit_launched(s, model, profile, seed, aug, progress, device)
+            if int(os.environ["RANK"]) != 0:
+                return s.path
+        elif workers > 1 and s.done < s.tcfg.epochs:
             state = _fit_data_parallel(s, workers, (model, data, out, profile, epochs, seed, aug), progress)
         else:
             with _bar(s, model, profile, progress) as bar:
@@ -407,6 +481,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
             ap = validation_ap(s.net, data)
             _atomic_save({**state, "val_ap": ap}, s.path)
             if progress:
+                print(convergence_line(state.get("val_history") or []))
                 print(f"val AP40 @0.7 ({ap['frames']} frames): 3D moderate {ap['3d_moderate']:.2f}, "
                       f"BEV moderate {ap['bev_moderate']:.2f}, 3D all-distance {ap['3d_all']:.2f}, "
                       f"BEV all-distance {ap['bev_all']:.2f}")

@@ -96,7 +96,7 @@ CONFIGS = {
         head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
         proposals_train=ProposalConfig(9000, 0.8, 512), proposals_test=ProposalConfig(1024, 0.7, 100),
         roi_grid=12, roi_conv=64, fc=(256, 256, 256), branch_fc=(256, 256),
-        targets=RoITargetConfig(per_frame=128, fg_iou=0.65, gt_jitter=0),
+        targets=RoITargetConfig(per_frame=128, fg_iou=0.65),
         output=OutputConfig(score="rcnn")),  # the stage-2 confidence alone, as OpenPCDet
 }
 

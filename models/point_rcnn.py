@@ -36,7 +36,7 @@ from models.roi_head import (
     refine_loss,
     sample_rois,
 )
-from models.voxelize import Grid, one_point_per_voxel, range_mask
+from models.voxelize import range_mask
 
 
 # pointrcnn.yaml's TARGET_CONFIG: a car / background confidence (CLS_SCORE_TYPE cls)
@@ -46,9 +46,11 @@ CLS_TARGETS = RoITargetConfig(per_frame=64, fg_iou=0.55, score_type="cls", score
 @dataclass(frozen=True)
 class PointRCNNConfig:
     pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 2.0)  # x0 y0 z0 x1 y1 z1, m
-    num_points: int = 4096  # in-range points thinned to this count for every later stage
-    far_depth: float = 40.0  # m: points this far are all kept by the thinning (OpenPCDet)
-    near_voxel: float = 0.5  # m: near points are first reduced to one per voxel of this edge (0: off)
+    # in-range points sampled to this count for every later stage (OpenPCDet: 16,384). 8,192 keeps
+    # a car at 21 m about 41 of its 333 points (4,096: 14) for twice the training step of 4,096
+    # (16,384: 3.5x); README "compact profiles"
+    num_points: int = 8192
+    far_depth: float = 40.0  # m: points this far are all kept by the sampling (OpenPCDet)
     sa_npoints: tuple[int, ...] = (512, 128, 32, 8)
     sa_radii: tuple[tuple[float, ...], ...] = ((0.5, 1.0), (1.0, 2.0), (2.0, 4.0), (4.0, 8.0))
     sa_nsamples: tuple[tuple[int, ...], ...] = ((16, 32), (16, 32), (16, 32), (16, 32))
@@ -85,7 +87,7 @@ CONFIGS = {
     ),
     "compact": PointRCNNConfig(),
     "kitti": PointRCNNConfig(
-        pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), num_points=16384, near_voxel=0.0,
+        pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), num_points=16384,
         sa_npoints=(4096, 1024, 256, 64), sa_radii=((0.1, 0.5), (0.5, 1.0), (1.0, 2.0), (2.0, 4.0)),
         sa_mlps=(((16, 16, 32), (32, 32, 64)), ((64, 64, 128), (64, 96, 128)),
                  ((128, 196, 256), (128, 196, 256)), ((256, 256, 512), (256, 384, 512))),
@@ -94,9 +96,31 @@ CONFIGS = {
         pool_samples=512, rcnn_sa=((128, 0.2, 16, (128, 128, 128)), (32, 0.4, 16, (128, 128, 256)),
                                     (None, 0.0, 0, (256, 256, 512))),
         refine_hidden=(256, 256),
-        targets=replace(CLS_TARGETS, per_frame=128, gt_jitter=0),
+        targets=replace(CLS_TARGETS, per_frame=128),
     ),
 }
+
+
+# ---- point sampling -------------------------------------------------------------------------
+
+_HASH_MOD = 2 ** 20  # hash_rank's range: distinct ranks for up to 1,048,576 points
+_HASH_HI, _HASH_LO = 632, 887  # multiplier 632 * 2**10 + 887 = 648,055: odd, about 2**20 / golden ratio
+
+
+def hash_rank(n: int, salt: int, device=None) -> Tensor:
+    """(n,) int64 Fibonacci hash of the indices 0..n-1: ((i + salt) * 648,055) mod 2**20.
+
+    The multiplier is odd, so indices below 2**20 get distinct ranks, and close to 2**20 over
+    the golden ratio, so the indices with the lowest ranks spread evenly over any index range
+    (a pseudo-random subset of a LiDAR scan, whose order runs along its rings). Index and
+    multiplier are split into 10-bit halves so that every intermediate stays below 2**24:
+    OpenVINO computes int64 in int32, and its integer products and remainders above 2**24 came out
+    a few units off.
+    """
+    i = torch.remainder(torch.arange(n, device=device) + salt, _HASH_MOD)  # (n,) < 2**20
+    i_hi, i_lo = torch.div(i, 2 ** 10, rounding_mode="floor"), torch.remainder(i, 2 ** 10)  # (n,) < 2**10 each
+    cross = torch.remainder(_HASH_HI * i_lo + _HASH_LO * i_hi, 2 ** 10) * 2 ** 10  # (n,) < 2**20
+    return torch.remainder(_HASH_LO * i_lo + cross, _HASH_MOD)  # the HI * hi term is a multiple of 2**20
 
 
 # ---- bin-based box coding ------------------------------------------------------------------
@@ -241,47 +265,33 @@ class PointRCNN(Detector):
         self.rcnn = RCNNNet(cfg, c)
         self.sampling_rng = np.random.default_rng(cfg.seed)
 
-    def points_of_interest(self, points: Tensor) -> tuple[Tensor, Tensor]:
-        """(N, 4) -> (num_points, 4) the in-range points thinned to num_points, and a bool
+    def points_of_interest(self, points: Tensor, salt: int = 0) -> tuple[Tensor, Tensor]:
+        """(N, 4) -> (num_points, 4) the in-range points sampled to num_points, and a bool
         scalar tensor: some point is in range.
 
-        OpenPCDet's PointRCNN sampling, deterministic and with a static output shape: every
-        point at least ``far_depth`` from the sensor is kept (a far car has few points to
-        lose), the near points fill the rest. A LiDAR's point density falls with the square of
-        the range, so the near points are first reduced to the first point (in input order) of
-        every ``near_voxel`` cube they occupy, which thins a nearby surface and keeps a car at
-        20-40 m (a uniform thinning of a 57k-point scan to 4,096 left such a car 14 points).
-        The rest are then thinned by evenly spaced indices in input order (LiDAR order runs
-        along the rings, so this is uniform). More far points than num_points: the far points
-        alone are thinned. A sparser cloud repeats points (repeats never win a later farthest
-        point sampling step); an empty one gives zero points.
+        OpenPCDet's PointRCNN sampling (``sample_points``), deterministic: every point at least
+        ``far_depth`` from the sensor is kept and a pseudo-random subset of the nearer ones fills
+        the rest, so a near car keeps the same share of its points as the near scan; when the far
+        points alone fill the budget, a pseudo-random subset of all in-range points. The
+        pseudo-random order is a fixed hash of the point index (:func:`hash_rank`; ``salt``
+        shifts it, for fresh draws in training), so torch and every ONNX runtime pick the same
+        points. Fewer in-range points than num_points: all of them, then repeats in the same
+        order (repeats never win a later farthest point sampling step); none: zero rows.
         """
-        inside = range_mask(points, self.cfg.pc_range)  # (N,)
-        depth2 = points[:, 0] ** 2 + points[:, 1] ** 2 + points[:, 2] ** 2  # (N,) m^2
-        far = depth2 >= self.cfg.far_depth ** 2
-        near_mask, far_mask = inside & ~far, inside & far
-        far_pts, near_pts = (points.index_select(0, torch.nonzero(m)[:, 0]) for m in (far_mask, near_mask))
-        if self.cfg.near_voxel > 0:
-            near_pts = self.one_per_voxel(near_pts)
-        # far points, near points, one zero row (read only when nothing is in range)
-        pts = torch.cat([far_pts, near_pts, points.new_zeros(1, 4)])
-        n_far, n_near = far_mask.sum(), torch.ones_like(far_mask.sum()) * near_pts.shape[0]  # () int64
         total = self.cfg.num_points
-        # slots taken by far points: all of them if they fit and near points fill the rest
-        k_far = torch.where(n_near > 0, torch.clamp(n_far, max=total), torch.full_like(n_far, total))
-        k_near = total - k_far
-        j = torch.arange(total, device=points.device, dtype=torch.long)  # (num_points,)
-        from_far = torch.div(j * n_far, k_far.clamp(min=1), rounding_mode="floor")
-        from_near = n_far + torch.div((j - k_far) * n_near, k_near.clamp(min=1), rounding_mode="floor")
-        idx = torch.where(j < k_far, from_far, from_near)  # (num_points,) rows of pts
-        # sum, not any(): ONNX ReduceMax over zero elements does not give False
-        return pts.index_select(0, idx), (n_far + n_near) > 0  # (num_points, 4), ()
-
-    def one_per_voxel(self, pts: Tensor) -> Tensor:
-        """(P, 4) in-range points -> (V, 4) the first point of each occupied near_voxel cube,
-        in input order."""
-        v = self.cfg.near_voxel
-        return one_point_per_voxel(pts, Grid(tuple(self.cfg.pc_range), (v, v, v)))
+        pts = torch.cat([points, points.new_zeros(1, 4)])  # (N + 1, 4): a zero row, read only when nothing is in range
+        inside = torch.cat([range_mask(points, self.cfg.pc_range), torch.zeros(1, dtype=torch.bool, device=points.device)])  # (N + 1,)
+        depth2 = pts[:, 0] ** 2 + pts[:, 1] ** 2 + pts[:, 2] ** 2  # (N + 1,) m^2
+        far = inside & (depth2 >= self.cfg.far_depth ** 2)
+        n_in, n_far = inside.sum(), far.sum()  # () int64
+        # sort key: the kept far points, then the rest in range in pseudo-random order, then the others
+        rank = hash_rank(pts.shape[0], salt, points.device).to(torch.float32)  # (N + 1,) exact below 2**24
+        tier = torch.where(inside, 1.0, 2.0) - (far & (n_far < total)).to(torch.float32)  # (N + 1,) 0, 1 or 2
+        order = torch.argsort(rank + tier * float(_HASH_MOD))  # (N + 1,) distinct keys: no tie to break
+        j = torch.arange(total, device=points.device)  # (num_points,)
+        pick = order[torch.remainder(j, n_in.clamp(min=1))]  # (num_points,) cyclic when n_in < num_points
+        idx = torch.where(n_in > 0, pick, torch.full_like(j, pts.shape[0] - 1))
+        return pts.index_select(0, idx), n_in > 0  # (num_points, 4), ()
 
     def stage_one(self, pts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """pts (n0, 4) -> features (n0, C), seg logit (n0,), box head output (n0, B)."""
@@ -336,7 +346,8 @@ class PointRCNN(Detector):
 
     def frame_loss(self, sample: Sample) -> dict[str, Tensor]:
         device = next(self.parameters()).device
-        pts, _ = self.points_of_interest(torch.as_tensor(sample.points, device=device))
+        salt = int(self.sampling_rng.integers(_HASH_MOD))  # a fresh draw of the near points per step
+        pts, _ = self.points_of_interest(torch.as_tensor(sample.points, device=device), salt)
         cars = torch.as_tensor(sample.boxes_of("Car"), device=device)
         others = torch.as_tensor(sample.gt_boxes[sample.gt_names != "Car"].astype(np.float32), device=device)
         feats, seg, box = self.stage_one(pts)

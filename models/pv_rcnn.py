@@ -112,7 +112,7 @@ CONFIGS = {
         keypoints=2048, raw_radii=(0.4, 0.8), raw_mlps=((16, 16), (16, 16)), levels=(0, 1, 2, 3),
         level_radii=((0.4, 0.8), (0.8, 1.2), (1.2, 2.4), (2.4, 4.8)), level_nsamples=(16, 32),
         kp_channels=128, grid=6, grid_mlps=((64, 64), (64, 64)), fc=(256, 256), branch_fc=(256, 256),
-        targets=RoITargetConfig(per_frame=128, gt_jitter=0),
+        targets=RoITargetConfig(per_frame=128),
         output=OutputConfig(score="rcnn")),  # the stage-2 confidence alone, as OpenPCDet
 }
 

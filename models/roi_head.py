@@ -39,7 +39,7 @@ class RoITargetConfig:
     score_type: str = "roi_iou"  # confidence target: "roi_iou" (IoU-guided) or "cls" (CLS_SCORE_TYPE)
     score_lo: float = 0.25  # roi_iou: 0 below, 1 above score_hi, linear between; cls: 0 below,
     score_hi: float = 0.75  # 1 above score_hi, ignored between (CLS_BG_THRESH, CLS_FG_THRESH)
-    gt_jitter: int = 4  # jittered copies of every GT box added to the proposals
+    gt_jitter: int = 0  # jittered copies of every GT box added to the proposals (OpenPCDet: none)
     jitter_xyz: float = 0.3  # metres, std of the centre jitter
     jitter_size: float = 0.1  # relative std of the size jitter
     jitter_yaw: float = 0.15  # radians

@@ -11,8 +11,6 @@ a dense tensor of the grid is laid out ``[D, H, W]`` like OpenPCDet's ``spatial_
 - :func:`hard_voxelize`: at most ``max_points`` points per voxel (the first ones in input order)
   and at most ``max_voxels`` voxels (those whose first point comes first), as in OpenPCDet /
   spconv's ``VoxelGenerator``.
-- :func:`one_point_per_voxel`: the first point of every occupied voxel (a density-levelling
-  point reduction, used by PointRCNN on near points).
 
 Both return :class:`Voxels`, a point list with a point -> voxel index, which every VFE in
 ``models/vfe.py`` consumes (a padded ``(V, T, C)`` tensor is never needed).
@@ -200,13 +198,6 @@ def first_points(inverse: Tensor, num_voxels: int) -> Tensor:
     first = _first_in_voxel(inverse, num_voxels)  # (V,)
     is_first = take_rows(first, inverse) == torch.arange(inverse.shape[0], dtype=torch.long)  # (P,)
     return torch.nonzero(is_first)[:, 0]
-
-
-def one_point_per_voxel(points: Tensor, grid: Grid) -> Tensor:
-    """(P, C) points inside the grid's range -> (V, C) the first point (input order) of every
-    occupied voxel, in input order."""
-    uniq, inverse = unique_cells(_linear_index(points, grid), math.prod(grid.shape), return_inverse=True)
-    return points.index_select(0, first_points(inverse, uniq.shape[0]))
 
 
 def hard_voxelize(points: Tensor, grid: Grid, max_points: int, max_voxels: int) -> Voxels:

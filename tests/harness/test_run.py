@@ -45,6 +45,8 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     summary = json.loads((out / "results.json").read_text())
     assert 0 < summary["wall_seconds"] <= sum(summary["stage_seconds"].values()) + 1
     assert summary["schema"] == "sotif-bench/run/1" and list(summary["models"]) == two
+    assert "draws" not in summary and not (out / "tables/draws.csv").exists()  # one draw: the layout of old
+    assert summary["models"]["pointpillars"]["train"]["val_history"][0]["epoch"] == 1
     for name in two:
         rt = summary["models"][name]["runtime"]
         # measured, not asserted equal: an untrained tiny model's proposal scores tie to the last bit, and
@@ -84,7 +86,25 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
     after = stage_keys(out)
     assert {k for k in after if after[k] != before[k]} == {"evaluate_pointpillars", "evaluate_point_rcnn"}
-    # 5. a damaged output reruns its stage, with a line saying so: a truncated ONNX file is exported again
+    # 5. two training draws: draw 0 is the run's model, resumed as it is; draw 1 trains with seed 1 into its own files
+    run(models=["pointpillars"], out=out, progress=False, config=TINY, seeds=2)
+    again = stage_keys(out)
+    assert {k for k in again if again[k] != after.get(k)} == {f"{s}_pointpillars.seed1" for s in
+                                                              ("train", "export", "predict", "predict_val", "evaluate")}
+    assert torch.load(out / "models/pointpillars.seed1/checkpoint.pt", weights_only=True)["seed"] == 1
+    for rel in ("models/pointpillars.seed1.onnx", "predictions/pointpillars.seed1/predict.json",
+                "results/pointpillars.seed1.json", "tables/draws.csv"):
+        assert (out / rel).is_file(), rel
+    summary = json.loads((out / "results.json").read_text())
+    draws = summary["draws"]["pointpillars"]
+    assert [d["seed"] for d in draws] == [0, 1] and draws[0]["results"] == "results/pointpillars.json"
+    import pandas as pd
+    table = pd.read_csv(out / "tables/draws.csv").iloc[0]
+    aps = [d["headline"]["3d"]["0.7"] for d in draws]
+    assert table["draws"] == 2 and table["AP3D mean"] == pytest.approx(np.mean(aps))
+    assert table["AP3D min"] == pytest.approx(min(aps)) and table["AP3D max"] == pytest.approx(max(aps))
+    assert "Training draws" in (out / "report.md").read_text()
+    # 6. a damaged output reruns its stage, with a line saying so: a truncated ONNX file is exported again
     # (the export may differ in its bytes, and then everything after it runs again), an emptied and a deleted
     # prediction file are predicted again
     onnx_file = out / "models/pointpillars.onnx"
@@ -105,7 +125,7 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     from harness.infer import check_contract
     check_contract(onnx_file)
     assert {p: p.read_text() for p in kept} == kept
-    # 6. bad input in a model's job ends the run with its file and problem, in the run's process or in a job's
+    # 7. bad input in a model's job ends the run with its file and problem, in the run's process or in a job's
     from harness.cli import main
     from harness.kitti import KittiError
     scan = out / f"data/sotif/training/velodyne/{test_ids[2]}.bin"

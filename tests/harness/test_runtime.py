@@ -38,3 +38,18 @@ def test_openvino_missing_or_failing_is_reported(make_onnx, dataset, tmp_path, m
         raise RuntimeError("Exception from src/core.cpp:132:\nunsupported operation Foo\nmore detail\n")
     monkeypatch.setattr(ov.Core, "compile_model", refuse)
     assert compare_openvino(path, dataset)["error"] == "compile: RuntimeError: unsupported operation Foo more detail"
+
+
+def test_openvino_is_compiled_in_f32(make_onnx, tmp_path, monkeypatch):
+    """On AVX-512 BF16 CPUs OpenVINO's default precision is bf16: the runner asks for f32."""
+    from harness.infer import OnnxDetector
+    ov = pytest.importorskip("openvino")
+    seen = []
+    original = ov.Core.compile_model
+
+    def spy(self, model, device, config=None):
+        seen.append(config)
+        return original(self, model, device, config or {})
+    monkeypatch.setattr(ov.Core, "compile_model", spy)
+    OnnxDetector(make_onnx(tmp_path / "c.onnx"), runtime="openvino")
+    assert seen and seen[0].get("INFERENCE_PRECISION_HINT") == "f32"

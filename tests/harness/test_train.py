@@ -20,7 +20,12 @@ def test_train_writes_checkpoint_and_resumes(tmp_path, capsys):
     assert state["config"]["pfn_channels"] == zoo.config("pointpillars", "tiny").pfn_channels
     assert len(state["data_hash"]) == 16 and len(state["config_hash"]) == 16 and "optimizer" in state
     assert np.isfinite(state["final_loss"])
-    assert "val AP40" in capsys.readouterr().out
+    out = capsys.readouterr()
+    assert "val AP40" in out.out
+    history = state["val_history"]  # the convergence check: one entry per epoch
+    assert [h["epoch"] for h in history] == [1, 2] and history[-1]["loss"] == state["final_loss"]
+    assert all(h["frames"] == 1 and 0 <= h["3d_moderate"] <= 100 for h in history)
+    assert "epoch 2/2: loss" in out.out and "val AP40 3D moderate after each epoch" in out.out
     mtime = ckpt.stat().st_mtime_ns
     train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=2, seed=0, progress=False)
     assert ckpt.stat().st_mtime_ns == mtime  # complete: resumed, nothing retrained
@@ -41,6 +46,7 @@ def test_compact_schedule_is_per_model_and_other_profiles_are_shared():
         assert train_config(name, "compact").epochs == COMPACT_EPOCHS[name]
         assert train_config(name, "compact").lr == TRAIN_CONFIGS["compact"].lr
         assert train_config(name, "tiny") == TRAIN_CONFIGS["tiny"]
+        assert train_config(name, "kitti").lr == {"parta2": 0.01, "pv_rcnn": 0.01, "point_rcnn": 0.01}.get(name, 3e-3)
     with pytest.raises(ValueError, match="unknown profile 'huge'"):
         train_config("second", "huge")
 
@@ -70,6 +76,18 @@ def test_a_training_stopped_before_its_validation_validates_when_run_again(tmp_p
     train("pointpillars", data, tmp_path / "run", profile="tiny", epochs=1, progress=False)
     again = torch.load(ckpt, weights_only=False)
     assert again["val_ap"] == expected and again["epoch"] == 1
+
+
+def test_a_resumed_training_keeps_its_val_history(tmp_path, monkeypatch):
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=7, val=1)
+    train_stopped_after_epoch_1(monkeypatch, "pointpillars", data, tmp_path / "run", profile="tiny", seed=0,
+                                progress=False)
+    ckpt = tmp_path / "run" / "checkpoint.pt"
+    first = torch.load(ckpt, weights_only=False)["val_history"]
+    assert [h["epoch"] for h in first] == [1]
+    train("pointpillars", data, tmp_path / "run", profile="tiny", seed=0, progress=False)
+    history = torch.load(ckpt, weights_only=False)["val_history"]
+    assert [h["epoch"] for h in history] == [1, 2] and history[0] == first[0]
 
 
 def test_resumed_training_sums_its_seconds(tmp_path, monkeypatch):
@@ -190,3 +208,23 @@ def test_train_refuses_bad_arguments_before_any_work(tmp_path, capsys, flags, me
                  "--out", str(tmp_path / "run"), *flags]) == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "run").exists()
+
+
+def test_a_torchrun_launch_trains_as_the_spawned_workers(tmp_path):
+    """`sotif-bench train` under torchrun (two local processes, env:// rendezvous, gloo) takes the
+    steps of `--workers 2`: same frames per worker, same draws, same all-reduce."""
+    import os
+    import subprocess
+    import sys
+    data = write_synthetic_dataset(tmp_path / "data", frames=5, seed=5, val=1)
+    spawned = train("pointpillars", data, tmp_path / "spawned", profile="tiny", epochs=1, progress=False, workers=2)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", "-m", "harness.cli",
+           "train", "--model", "pointpillars", "--data", str(data), "--out", str(tmp_path / "launched"),
+           "--profile", "tiny", "--epochs", "1", "--workers", "1", "--quiet"]  # one process each: workers 2 only if launched
+    done = subprocess.run(cmd, env={**os.environ, "OMP_NUM_THREADS": "1"}, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    a, b = (torch.load(p, weights_only=False) for p in (spawned, tmp_path / "launched" / "checkpoint.pt"))
+    assert b["workers"] == 2 and b["epoch"] == 1 and "val_ap" in b
+    assert b["final_loss"] == pytest.approx(a["final_loss"], rel=1e-5)
+    for k, v in a["state_dict"].items():
+        assert torch.allclose(v.float(), b["state_dict"][k].float(), rtol=1e-5, atol=1e-6), k

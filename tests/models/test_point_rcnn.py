@@ -15,6 +15,7 @@ from models.point_rcnn import (
     build,
     decode_bins,
     encode_bins,
+    hash_rank,
 )
 
 CFG = CONFIGS["tiny"]
@@ -102,60 +103,66 @@ def tiny_scene(rng, n_cars=2, frame_id="000000"):
     return Sample(frame_id, points, boxes, np.array(["Car"] * len(boxes)))
 
 
-def numpy_one_per_voxel(points, cfg):
-    """The first point (input order) of every occupied near_voxel cube of the range."""
-    lo = np.array(cfg.pc_range[:3], np.float32)
-    shape = np.round((np.array(cfg.pc_range[3:]) - cfg.pc_range[:3]) / cfg.near_voxel).astype(np.int64)
-    cell = np.floor((points[:, :3] - lo) / np.float32(cfg.near_voxel)).astype(np.int64)
-    cell = np.clip(cell, 0, shape - 1)
-    _, first = np.unique(cell, axis=0, return_index=True)
-    return points[np.sort(first)]
+def numpy_hash_rank(n, salt=0):
+    """((i + salt) * 648,055) mod 2**20 in plain int64 arithmetic."""
+    return ((np.arange(n, dtype=np.int64) + salt) % 2**20 * 648055) % 2**20
 
 
-def numpy_points_of_interest(points, cfg):
-    """OpenPCDet's near/far sampling with evenly spaced picks instead of random ones, near
-    points first reduced to one per near_voxel cube."""
-    lo, hi = np.array(cfg.pc_range[:3]), np.array(cfg.pc_range[3:])
-    inside = np.all((points[:, :3] >= lo) & (points[:, :3] < hi), axis=1)
-    far = np.linalg.norm(points[:, :3].astype(np.float64), axis=1) >= cfg.far_depth
-    far_pts, near_pts = points[inside & far], points[inside & ~far]
-    if cfg.near_voxel > 0 and len(near_pts):
-        near_pts = numpy_one_per_voxel(near_pts, cfg)
+def numpy_points_of_interest(points, cfg, salt=0):
+    """OpenPCDet's sampling with the hash order for its random draws: far points first (all of
+    them while they fit), then the rest in range by rank, cycled to num_points."""
     n = cfg.num_points
-    if len(far_pts) + len(near_pts) == 0:
+    lo, hi = np.array(cfg.pc_range[:3]), np.array(cfg.pc_range[3:])
+    inside = np.flatnonzero(np.all((points[:, :3] >= lo) & (points[:, :3] < hi), axis=1))
+    if not len(inside):
         return np.zeros((n, 4), np.float32)
-    if len(near_pts) == 0 or len(far_pts) >= n:
-        return far_pts[[j * len(far_pts) // n for j in range(n)]]
-    k = n - len(far_pts)
-    return np.concatenate([far_pts, near_pts[[j * len(near_pts) // k for j in range(k)]]])
+    rank = numpy_hash_rank(len(points) + 1, salt)[inside]
+    far = np.linalg.norm(points[inside, :3].astype(np.float64), axis=1) >= cfg.far_depth
+    if far.sum() >= n:  # the far points alone fill the budget: no priority
+        far[:] = False
+    seq = np.concatenate([inside[far][np.argsort(rank[far])], inside[~far][np.argsort(rank[~far])]])
+    return points[seq[np.arange(n) % len(seq)]]
 
 
-@pytest.mark.parametrize("near_voxel", [0.0, 0.5, 2.0])
-@pytest.mark.parametrize("n_near, n_far", [(900, 100), (50, 30), (0, 70), (20, 600), (0, 0), (300, 0)])
-def test_points_of_interest_matches_numpy(n_near, n_far, near_voxel):
+def test_hash_rank_matches_int64_and_is_a_permutation():
+    for n, salt in [(0, 0), (1000, 0), (5000, 123_456), (2**20, 0), (300, 2**20 - 7)]:
+        got = hash_rank(n, salt).numpy()
+        np.testing.assert_array_equal(got, numpy_hash_rank(n, salt))
+        assert len(np.unique(got)) == n  # distinct below 2**20 points
+    assert len(np.unique(hash_rank(2**20, 99).numpy())) == 2**20
+
+
+@pytest.mark.parametrize("salt", [0, 777])
+@pytest.mark.parametrize("n_near, n_far", [(900, 100), (50, 30), (0, 70), (20, 600), (0, 0), (300, 0), (10, 256)])
+def test_points_of_interest_matches_numpy(n_near, n_far, salt):
     rng = np.random.default_rng(n_near + 7 * n_far)
-    cfg = dataclasses.replace(CONFIGS["tiny"], near_voxel=near_voxel)  # 256 points
+    cfg = CONFIGS["tiny"]  # 256 points
     near = rng.uniform([0, -25, -2.5], [30, 25, 1.5], (n_near, 3))
-    if n_near:  # half of them a dense surface
-        near[: n_near // 2] = near[0] + rng.uniform(-1.5, 1.5, (n_near // 2, 3))
     far = rng.uniform([45, -30, -2.5], [79, 30, 1.5], (n_far, 3))
     outside = rng.uniform([-50, 40, -2], [-1, 60, 1], (40, 3))
     xyz = rng.permutation(np.concatenate([near, far, outside]))
     points = np.c_[xyz, rng.uniform(0, 1, len(xyz))].astype(np.float32)
-    got, nonempty = PointRCNN(cfg).points_of_interest(torch.from_numpy(points))
-    np.testing.assert_array_equal(got.numpy(), numpy_points_of_interest(points, cfg))
+    got, nonempty = PointRCNN(cfg).points_of_interest(torch.from_numpy(points), salt)
+    np.testing.assert_array_equal(got.numpy(), numpy_points_of_interest(points, cfg, salt))
     assert bool(nonempty) == (n_near + n_far > 0)
 
 
-def test_one_per_voxel_thins_a_dense_surface_only():
-    """Near points: a dense patch keeps one point per cube, isolated points all stay."""
-    cfg = dataclasses.replace(CONFIGS["tiny"], near_voxel=0.5)
-    rng = np.random.default_rng(3)
-    patch = np.c_[rng.uniform([10.0, 0.0, 0.0], [10.5, 0.5, 0.5], (200, 3)), np.zeros(200)]  # one cube
-    lone = np.c_[np.arange(12.25, 20.0, 1.0), np.full(8, 3.25), np.full(8, 0.25), np.ones(8)]
-    points = np.concatenate([patch, lone]).astype(np.float32)
-    got = PointRCNN(cfg).one_per_voxel(torch.from_numpy(points)).numpy()
-    np.testing.assert_array_equal(got, points[[0, *range(200, 208)]])
+def test_points_of_interest_keeps_near_density():
+    """A near car keeps about the share of its points that the near scan keeps, far points all."""
+    rng = np.random.default_rng(5)
+    cfg = dataclasses.replace(CONFIGS["tiny"], num_points=2000)
+    scan = rng.uniform([0, -30, -2], [39, 30, 1], (20000, 3))  # near ground, 40 m circle not crossed
+    scan = scan[np.linalg.norm(scan, axis=1) < 39]
+    car = rng.uniform([5, -1, -1], [9, 1, 0.5], (3000, 3))  # 3,000 points at 7 m
+    far = rng.uniform([50, -10, -2], [70, 10, 1], (400, 3))
+    xyz = rng.permutation(np.concatenate([scan, car, far]))
+    got, _ = PointRCNN(cfg).points_of_interest(torch.from_numpy(np.c_[xyz, np.zeros(len(xyz))].astype(np.float32)))
+    kept = got.numpy()[:, :3]
+    assert len(np.unique(kept, axis=0)) == 2000
+    assert (kept[:, 0] >= 50).sum() == 400  # every far point
+    in_car = ((kept >= [5, -1, -1]) & (kept < [9, 1, 0.5])).all(1).sum()
+    share = (2000 - 400) / (len(scan) + len(car))
+    assert abs(in_car - 3000 * share) < 0.15 * 3000 * share
 
 
 def test_build_rejects_unknown_profile():
@@ -201,6 +208,8 @@ def test_onnx_matches_torch(tmp_path):
     rng = np.random.default_rng(1)
     model.loss([tiny_scene(rng)])  # move the batch-norm statistics off their defaults
     model.eval()
+    with torch.no_grad():  # spread the untrained foreground scores (all near 0.01): ranks not decided by rounding
+        model.seg_head[-1].weight.mul_(30.0)
     path = tmp_path / "point_rcnn.onnx"
     export_onnx(model, path, {"sotif.profile": "tiny"})
     clouds = [tiny_scene(rng).points, tiny_scene(rng, 1).points[::7],
@@ -217,3 +226,37 @@ def test_onnx_matches_torch(tmp_path):
                          np.concatenate([ref[2], ref[3][:, None], ref[4]], 1))
         assert (len(ref[2]) > 0) == (len(cloud) > 0)  # RoIs from any cloud with points in range
     assert max(integer_extremes(path, clouds[0].astype(np.float32)).values()) < 2 ** 31  # OpenVINO: int32
+
+
+class _Sampling(torch.nn.Module):
+    def __init__(self, model):
+        super().__init__()
+        self.model = model
+
+    def forward(self, points):
+        return self.model.points_of_interest(points)[0]
+
+
+def test_points_of_interest_exports_exactly_for_large_clouds(tmp_path):
+    """onnxruntime and OpenVINO (int64 computed in int32, integer arithmetic inexact above 2**24) pick
+    the points torch picks from 300,000 (the hash's products would exceed 2**24 unsplit)."""
+    import onnxruntime as ort
+    module = _Sampling(PointRCNN(CFG)).eval()
+    rng = np.random.default_rng(4)
+    small = np.c_[rng.uniform([0, -30, -2.5], [79, 30, 1.5], (500, 3)), rng.uniform(0, 1, 500)].astype(np.float32)
+    path = tmp_path / "sampling.onnx"
+    dim = torch.export.Dim("n", min=0, max=2**20 - 1)
+    torch.onnx.export(module, (torch.from_numpy(small),), dynamo=True, dynamic_shapes=({0: dim},)).save(path)
+    large = np.c_[rng.uniform([0, -30, -2.5], [79, 30, 1.5], (300_000, 3)), rng.uniform(0, 1, 300_000)]
+    large = large.astype(np.float32)
+    runners = [lambda x: ort.InferenceSession(str(path)).run(None, {"points": x})[0]]
+    try:
+        import openvino
+        compiled = openvino.Core().compile_model(str(path), "CPU", {"INFERENCE_PRECISION_HINT": "f32"})
+        runners.append(lambda x: compiled(x)[0])
+    except ImportError:
+        pass
+    for cloud in (small, large):
+        ref = module(torch.from_numpy(cloud)).numpy()
+        for run in runners:
+            np.testing.assert_array_equal(run(cloud), ref)

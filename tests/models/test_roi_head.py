@@ -1,6 +1,8 @@
 """Second-stage target assignment, canonical box coding, corner and IoU-guided losses."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -87,7 +89,30 @@ def test_sample_rois_without_gt_or_proposals():
     t = sample_rois(random_boxes(rng, 20), np.zeros((0, 7), np.float32), cfg, rng)
     assert len(t.rois) == 8 and float(t.iou.max()) == 0.0
     t = sample_rois(np.zeros((0, 7), np.float32), random_boxes(rng, 2), cfg, rng)
-    assert len(t.rois) == 8 and (t.iou.numpy() > 0).any()
+    assert len(t.rois) == 0  # nothing to draw from
+    t = sample_rois(np.zeros((0, 7), np.float32), random_boxes(rng, 2), replace(cfg, gt_jitter=3), rng)
+    assert len(t.rois) == 8 and (t.iou.numpy() > 0).any()  # drawn from the jittered copies
+
+
+def test_sample_rois_draws_only_proposals_by_default():
+    """No ground-truth copies join the proposals unless a config asks for them (OpenPCDet adds
+    none); the draw then holds only rows of the proposals, whatever the foreground share."""
+    rng = np.random.default_rng(8)
+    gt = random_boxes(rng, 4, 15.0)
+    proposals = np.concatenate([random_boxes(rng, 30, 20.0), gt[:1] + [0.1, 0, 0, 0, 0, 0, 0.02]]).astype(np.float32)
+    t = sample_rois(proposals, gt, RoITargetConfig(per_frame=32), np.random.default_rng(0))
+    rows = t.rois.numpy()
+    assert np.abs(rows[:, None, :] - proposals[None, :, :]).max(-1).min(1).max() == 0.0
+    assert (t.iou.numpy() >= 0.55).sum() == 1  # the one good proposal, no copy of the other cars
+    jittered = sample_rois(proposals, gt, RoITargetConfig(per_frame=32, gt_jitter=4), np.random.default_rng(0))
+    assert (jittered.iou.numpy() >= 0.55).sum() > 1
+
+
+@pytest.mark.parametrize("name", ["parta2", "pv_rcnn", "point_rcnn"])
+@pytest.mark.parametrize("profile", ["tiny", "compact", "kitti"])
+def test_no_profile_adds_ground_truth_copies(name, profile):
+    from models.zoo import config
+    assert config(name, profile).targets.gt_jitter == 0
 
 
 def _shifted(ious) -> np.ndarray:
