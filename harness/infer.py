@@ -1,6 +1,6 @@
 """Inference through the ONNX contract: any conforming file runs here, ours or a user's.
 
-The harness knows the contract (DESIGN.md), not the models: ``check_contract`` reads a file's
+The harness knows the contract (docs/models.md), not the models: ``check_contract`` reads a file's
 inputs, outputs and metadata and refuses a file that breaks the contract; ``OnnxDetector`` runs
 it in onnxruntime (or OpenVINO); ``predict`` runs a data set split and writes KITTI result
 files (camera-frame labels with projected 2D boxes) plus per-frame latency.
@@ -186,7 +186,7 @@ def _check_io(path, model) -> tuple[dict, dict]:
 
 
 def check_contract(path) -> ContractInfo:
-    """Validate an ONNX file against the contract of DESIGN.md; raise ContractError if it breaks it."""
+    """Validate an ONNX file against the ONNX contract (docs/models.md); raise ContractError if it breaks it."""
     path = Path(path)
     if not path.is_file():
         raise ContractError(path, "is a folder, not an ONNX file" if path.is_dir() else "file not found")

@@ -1,6 +1,6 @@
 """Plain data classes shared by the simulator, the models and the harness.
 
-Conventions (DESIGN.md): LiDAR frame x forward, y left, z up, metres. Points are float32
+Conventions (README, docs/simulator.md): LiDAR frame x forward, y left, z up, metres. Points are float32
 (N, 4) = x, y, z, intensity in [0, 1]. A box row is [x, y, z, l, w, h, yaw] with (x, y, z)
 the geometric centre and yaw counter-clockwise about +z from +x, wrapped to [-pi, pi).
 """

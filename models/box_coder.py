@@ -1,6 +1,6 @@
 """SECOND's residual box coder and the direction-bin helpers (OpenPCDet ``ResidualCoder``).
 
-Boxes are ``[x, y, z, l, w, h, yaw]`` with the geometric centre (DESIGN.md), so no
+Boxes are ``[x, y, z, l, w, h, yaw]`` with the geometric centre (the project's one box convention), so no
 bottom-centre shift is needed. With d = sqrt(l_a^2 + w_a^2):
 ``dx = (x_g - x_a) / d, dy = (y_g - y_a) / d, dz = (z_g - z_a) / h_a,
 dl = log(l_g / l_a), dw = log(w_g / w_a), dh = log(h_g / h_a), dyaw = yaw_g - yaw_a``.

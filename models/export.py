@@ -1,4 +1,4 @@
-"""ONNX export following the contract of DESIGN.md.
+"""ONNX export following the ONNX contract (docs/models.md).
 
 ``export_onnx(model, path, metadata) -> dict`` exports one frame's forward with the dynamo
 exporter (opset 18, dynamic number of points), checks the file with ``onnx.checker``, drops the

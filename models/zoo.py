@@ -1,6 +1,6 @@
 """Model registry by name and checkpoint loading.
 
-- ``MODEL_NAMES``: the seven detector names (DESIGN.md).
+- ``MODEL_NAMES``: the seven detector names (README).
 - ``build(name, profile="compact") -> Detector``: imports ``models.<name>`` lazily; every
   detector module exposes ``CONFIGS: dict[str, Config]`` with keys "tiny", "compact", "kitti"
   and ``build(profile) -> Detector``.

@@ -1,6 +1,6 @@
 """Generate a KITTI-layout data set: the SOTIF scenario per weather, or training scenes.
 
-Layout (DESIGN.md): <out>/training/{velodyne,image_2,calib,label_2}/NNNNNN.*,
+Layout (docs/simulator.md): <out>/training/{velodyne,image_2,calib,label_2}/NNNNNN.*,
 <out>/ImageSets/{train,val,test}.txt, <out>/meta/frames.csv, <out>/meta/dataset.json.
 Each frame also leaves meta/frames/NNNNNN.json (its meta row and file hashes); a re-run
 skips frames whose record, config and file hashes match (resume). dataset.json is last.
