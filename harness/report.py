@@ -44,6 +44,8 @@ HOW_TO_READ = {  # one sentence opening each section: how to read it
     "data": "Fewer points and a shorter mean range show how much a preset took from the sensor before any "
             "detector ran.",
     "stages": "Use it to see where the run's time went.",
+    "draws": "A difference between two models means something only where it is larger than each model's range "
+             "over its training draws, and that range is often wider than the bootstrap interval over frames.",
 }
 
 

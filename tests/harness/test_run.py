@@ -178,11 +178,15 @@ def test_eta_of_model_jobs():
     # b has 1.5 * 60 * m[b] - t_a left; c and d queue behind it on whichever slot frees first
     left_b, left_c = 90.0 * m[b] - t_a, 90.0 * m[c]
     expect = max(left_b + 90.0 * m[d], left_c) if left_b <= left_c else max(left_b, left_c + 90.0 * m[d])
-    assert _eta_seconds([a, b, c, d], starts, ends, t_a, 2) == pytest.approx(expect)
-    # one slot, nothing timed yet (a resumed job of a few seconds does not count): sample minutes as they are
-    assert _eta_seconds([a, b], {a: 0.0, b: 5.0}, {a: 5.0}, 5.0, 1) == pytest.approx(60.0 * m[b])
+    assert _eta_seconds([a, b, c, d], m, starts, ends, t_a, 2) == pytest.approx(expect)
+    # one slot, nothing timed yet (a resumed job with little left does not count): sample minutes as they are
+    resumed = {**m, a: 0.1}
+    assert _eta_seconds([a, b], resumed, {a: 0.0, b: 5.0}, {a: 5.0}, 5.0, 1) == pytest.approx(60.0 * m[b])
+    # a resumed run whose jobs are all done but one epoch of b: the ETA is that share, not the full sample times
+    nearly = {a: 0.0, b: 0.05 * m[b], c: 0.0, d: 0.0}
+    assert _eta_seconds([a, b, c, d], nearly, {a: 0.0, b: 0.0}, {}, 0.0, 2) == pytest.approx(3.0 * m[b])
     # a running job past its expected time counts as ending now
-    assert _eta_seconds([a, b], {a: 0.0, b: 0.0}, {a: t_a}, 10 * t_a, 2) == 0.0
+    assert _eta_seconds([a, b], m, {a: 0.0, b: 0.0}, {a: t_a}, 10 * t_a, 2) == 0.0
 
 
 def test_bad_profile_and_model_names():
