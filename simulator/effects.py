@@ -114,6 +114,12 @@ def thinned_bernoulli(n: int, p_max: float, p_of, rng: np.random.Generator) -> n
     return cand[rng.random(len(cand)) * p_max < p_of(cand)]
 
 
+def first_per_ray(rays: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """Positions of the smallest ``key`` of each ray in ``rays`` (ties: the earlier position), sorted by ray."""
+    order = np.lexsort((key, rays))
+    return order[np.r_[True, rays[order][1:] != rays[order][:-1]]] if len(rays) else order
+
+
 def mp_slope(rain_mmh: float) -> float:
     """Marshall-Palmer slope Lambda = 4.1 R^-0.21 in 1/mm."""
     return 4.1 * rain_mmh ** -0.21
@@ -160,8 +166,7 @@ def rain_drop_returns(path: np.ndarray, rain_mmh: float, alpha: float, p_min: fl
     r = np.interp(rng.random(len(rays)) * mean[rays], cum, grid)  # inverse CDF of the range
     d = detectable_drop_mm(r, alpha, p_min, beam_div) + rng.exponential(1.0 / lam, len(rays))
     p = drop_power(r, d, alpha, beam_div)
-    order = np.lexsort((-p, rays))
-    first = order[np.r_[True, rays[order][1:] != rays[order][:-1]]]
+    first = first_per_ray(rays, -p)
     return rays[first], r[first], p[first]
 
 

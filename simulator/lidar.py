@@ -331,17 +331,6 @@ def add_range_noise(r, hit, z, power, p_min, sigma0, range_accuracy):
         r[i] += z[q] * np.sqrt(sigma0 * sigma0 + range_accuracy * range_accuracy * p_min / (2.0 * power[i]))
 
 
-def nearest_soft(sources: list[tuple[np.ndarray, np.ndarray, float]]):
-    """Per ray the nearest soft return over sparse sources [(ray indices, ranges, intensity level)]:
-    (sorted ray indices, ranges, levels); on a tie the earlier source wins."""
-    idx = np.concatenate([s[0] for s in sources]).astype(np.int64)
-    rng_ = np.concatenate([s[1] for s in sources]).astype(np.float64)
-    level = np.concatenate([np.full(len(s[0]), s[2]) for s in sources])
-    order = np.lexsort((np.arange(len(idx)), rng_, idx))
-    first = order[np.r_[True, idx[order][1:] != idx[order][:-1]]] if len(idx) else order
-    return idx[first], rng_[first], level[first]
-
-
 def physics_returns(st: dict, near: np.ndarray, dy: dict, scene: RayScene, world_dirs: np.ndarray,
                     spec: LidarSpec, pose: Pose, weather: WeatherPreset, vehicles: list[Vehicle],
                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -365,16 +354,15 @@ def physics_returns(st: dict, near: np.ndarray, dy: dict, scene: RayScene, world
         noise = normals(rng, len(idx)) * effects.lisa_range_sigma(p_soft, p_min, spec.range_accuracy_m, spec.range_noise_m)
         r_out[idx], power[idx] = soft + noise, p_soft
         i_out[idx] = np.minimum(p_soft * soft ** 2 * np.exp(-effects.CARLA_ATTENUATION * soft), 1.0)
-    sources = [(*effects.sunlight_noise(n, weather.sun_altitude_angle, weather.cloudiness, spec.max_range, rng), 0.01)]
-    idx, soft, level = nearest_soft(sources)
-    hard = r_out[idx]
-    use = soft < np.where(np.isnan(hard), np.inf, hard)
+    idx, soft = effects.sunlight_noise(n, weather.sun_altitude_angle, weather.cloudiness, spec.max_range, rng)
+    use = soft < np.where(np.isnan(r_out[idx]), np.inf, r_out[idx])  # a false trigger before the echo: first return
     r_out[idx[use]] = soft[use]
-    i_out[idx[use]] = level[use] * rng.uniform(0.5, 1.5, int(use.sum()))
+    i_out[idx[use]] = SUNLIGHT_LEVEL * rng.uniform(0.5, 1.5, int(use.sum()))
     return r_out, i_out
 
 
 SPRAY_REFLECTANCE = 0.05  # a spray cluster as a beam-filling soft target (not a published value)
+SUNLIGHT_LEVEL = 0.01  # mean intensity of a sunlight false return
 
 
 def spray_returns(spec: LidarSpec, pose: Pose, vehicles: list[Vehicle], cover: float, path: np.ndarray,
@@ -384,7 +372,7 @@ def spray_returns(spec: LidarSpec, pose: Pose, vehicles: list[Vehicle], cover: f
     idx, r = spray_ranges(spec, pose, vehicles, cover, rng)
     front = r < path[idx]
     idx, r = idx[front], r[front]
-    return idx, r, SPRAY_REFLECTANCE * np.exp(-2.0 * a_rain * r) / r ** 2
+    return idx, r, effects.received_power(SPRAY_REFLECTANCE, 1.0, r, effects.two_way_transmission(r, a_rain))
 
 
 def spray_ranges(spec: LidarSpec, pose: Pose, vehicles: list[Vehicle], cover: float,
@@ -408,6 +396,5 @@ def spray_ranges(spec: LidarSpec, pose: Pose, vehicles: list[Vehicle], cover: fl
     close = np.abs(el - elev[ch]) < 0.2
     col = np.round(az / (2 * np.pi) * spec.n_azimuth).astype(int) % spec.n_azimuth
     idx, r = (ch * spec.n_azimuth + col)[close], rng_[close]
-    order = np.lexsort((r, idx))
-    first = order[np.r_[True, idx[order][1:] != idx[order][:-1]]] if len(idx) else order
+    first = effects.first_per_ray(idx, r)
     return idx[first].astype(np.int64), r[first]

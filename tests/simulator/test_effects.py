@@ -217,3 +217,15 @@ def test_spray_counts_and_wedges_per_vehicle():
         counts += np.bincount(k, minlength=3)
     mean = 0.6 * cover * speeds * dims[:, 1]
     np.testing.assert_array_less(np.abs(counts / trials - mean), 5 * np.sqrt(mean / trials) + 1e-9)
+
+
+def test_first_per_ray_matches_a_loop():
+    rng = np.random.default_rng(10)
+    rays = rng.integers(0, 40, 300)
+    key = rng.choice([1.0, 2.0, 3.0], 300)  # many ties: the earlier position wins
+    best = {}
+    for pos, (ray, k) in enumerate(zip(rays, key)):
+        if ray not in best or k < key[best[ray]]:
+            best[ray] = pos
+    np.testing.assert_array_equal(effects.first_per_ray(rays, key), [best[r] for r in sorted(best)])
+    assert len(effects.first_per_ray(np.zeros(0, np.int64), np.zeros(0))) == 0

@@ -215,30 +215,6 @@ def test_points_match_numpy():
     np.testing.assert_array_equal(pts, np.c_[dirs[keep] * r[keep, None], inten[keep]].astype(np.float32))
 
 
-def test_nearest_soft_matches_dense_minimum():
-    from simulator.lidar import nearest_soft
-
-    rng = np.random.default_rng(14)
-    n = 500
-    sources = []
-    for level in (0.02, 0.03, 0.01, 0.05):
-        idx = np.sort(rng.choice(n, rng.integers(0, 120), replace=False))
-        sources.append((idx, rng.choice([2.0, 3.0, 5.0], len(idx)), level))  # many equal ranges: ties
-    soft, soft_level = np.full(n, np.inf), np.zeros(n)
-    for idx, r, level in sources:  # the dense reference: a strictly nearer source replaces
-        dense = np.full(n, np.nan)
-        dense[idx] = r
-        nearer = dense < soft
-        soft[nearer], soft_level[nearer] = dense[nearer], level
-    idx, r, level = nearest_soft(sources)
-    hit = np.flatnonzero(np.isfinite(soft))
-    np.testing.assert_array_equal(idx, hit)
-    np.testing.assert_array_equal(r, soft[hit])
-    np.testing.assert_array_equal(level, soft_level[hit])
-    empty = nearest_soft([(np.zeros(0, np.int64), np.zeros(0), 0.01)])
-    assert all(len(a) == 0 for a in empty)
-
-
 def test_spray_clusters_land_on_their_nearest_ray():
     from simulator.lidar import spray_ranges
 
