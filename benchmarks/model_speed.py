@@ -16,6 +16,7 @@ import torch
 
 from benchmarks.ort_profile import profile_frames, session
 from harness.runtime import outputs_agree
+from models.base import reset_norm_statistics
 
 
 def frame_inputs(model, sample) -> list[np.ndarray]:
@@ -29,10 +30,7 @@ def frame_inputs(model, sample) -> list[np.ndarray]:
 def random_weights(model, samples) -> None:
     """BatchNorm statistics from ``samples`` (train-mode passes), then anchor class layers with
     large random weights and a bias that puts the empty-cloud logits at <= -3."""
-    for m in model.modules():
-        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-            m.reset_running_stats()
-            m.momentum = None  # cumulative average
+    reset_norm_statistics(model)  # cumulative average of the passes below
     model.train()
     with torch.no_grad():
         for s in samples:

@@ -37,6 +37,14 @@ def training_form() -> bool:
     return torch.is_grad_enabled() and not tracing()
 
 
+def reset_norm_statistics(model: nn.Module) -> None:
+    """Clear every BatchNorm's running statistics and make them a cumulative average of the passes to come."""
+    for m in model.modules():
+        if isinstance(m, nn.modules.batchnorm._BatchNorm):
+            m.reset_running_stats()
+            m.momentum = None
+
+
 def mean_over_frames(frame_losses: Iterable[dict[str, Tensor]], frames: int) -> dict[str, Tensor]:
     """Each loss term averaged over the frames of a batch (frames run one by one: no batch axis)."""
     totals: dict[str, Tensor] = {}

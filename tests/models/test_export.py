@@ -98,3 +98,16 @@ def test_export_is_byte_reproducible(tmp_path):
     proto = onnx.load(str(tmp_path / "a.onnx"))
     assert "Loop" in op_histogram(proto)
     assert not any(node.metadata_props for node in proto.graph.node)  # no stack traces, no paths
+
+
+def test_reset_norm_statistics_averages_the_passes_that_follow():
+    from models.base import reset_norm_statistics
+    bn = torch.nn.BatchNorm1d(3)
+    bn.train()
+    bn(torch.randn(8, 3) * 5 + 2)  # statistics of an earlier pass, with the default momentum
+    reset_norm_statistics(torch.nn.Sequential(bn))
+    batches = [torch.randn(16, 3) * s + m for s, m in ((1.0, 0.0), (2.0, 3.0))]
+    for x in batches:
+        bn(x)
+    np.testing.assert_allclose(bn.running_mean.numpy(), np.mean([x.mean(0).numpy() for x in batches], 0), rtol=1e-5)
+    assert bn.momentum is None and int(bn.num_batches_tracked) == 2

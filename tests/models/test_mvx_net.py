@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from harness.types import Sample
+from models.base import reset_norm_statistics
 from models.export import export_onnx, integer_extremes, run_onnx
 from models.mvx_net import CONFIGS, MVXNet, build
 from models.voxelize import dynamic_voxelize
@@ -97,10 +98,7 @@ def test_forward_shapes_and_loss_falls():
 
 def calibrate_norms(model, scenes):
     """BatchNorm running statistics = averages over train-mode passes on the scenes."""
-    for m in model.modules():
-        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-            m.reset_running_stats()
-            m.momentum = None  # cumulative average
+    reset_norm_statistics(model)  # cumulative average of the passes below
     model.train()
     with torch.no_grad():
         for s in scenes:

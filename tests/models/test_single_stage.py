@@ -7,6 +7,7 @@ import torch
 
 from harness.dataset import synthetic_sample
 from models import zoo
+from models.base import reset_norm_statistics
 from models.export import example_inputs, export_checkpoint, integer_extremes, run_onnx
 
 NAMES = ("pointpillars", "second", "dv_second")
@@ -35,10 +36,7 @@ def test_loss_falls_on_tiny_scene(name):
 
 def _calibrate_norms(model):
     """BatchNorm running statistics = averages over a few random clouds (train-mode passes)."""
-    for m in model.modules():
-        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-            m.reset_running_stats()
-            m.momentum = None  # cumulative average
+    reset_norm_statistics(model)  # cumulative average of the passes below
     model.train()
     with torch.no_grad():
         for seed in range(3):
