@@ -1,0 +1,111 @@
+"""The zoo's ranking checks, read from one finished ``sotif-bench run`` folder.
+
+Per model: validation AP40 3D moderate (the checkpoint's, on held-out dry frames), the test split's
+headline 3D AP at IoU 0.7 and its distance bins; for two-stage models the recall at the proposals
+(RoI) and at the refined boxes (RCNN) at IoU 0.7, and the AP of the proposals alone (their KITTI
+result files, ``predictions/<model>/rois/``, evaluated here) beside the AP of the final boxes. Then
+the checks of the zoo issue, each printed as ``pass``/``FAIL`` with its numbers:
+
+- val AP40 3D moderate >= 85 for every model;
+- Part-A2, PV-RCNN and PointRCNN at or above SECOND (val AP);
+- refined boxes beat proposals: recall @0.7 RCNN > RoI, and final-box AP > proposal AP;
+- MVX-Net at or above DV-SECOND (val AP) and within 10 points of it in every distance bin;
+- PointRCNN's 0-30 m AP at least its 30-50 m AP.
+
+    python benchmarks/zoo_check.py reports/default [--json out.json]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+TWO_STAGE = ("parta2", "pv_rcnn", "point_rcnn")
+BINS = ("0-30", "30-50", "50-80")  # harness.evaluate.DISTANCE_BINS, metres
+
+
+def model_rows(run: Path) -> dict[str, dict]:
+    """One row of figures per model of the run (missing figures are None)."""
+    from harness.evaluate import evaluate
+    summary = json.loads((run / "results.json").read_text())
+    test = run / "data" / "sotif" / "ImageSets" / "test.txt"
+    rows = {}
+    for name, m in summary["models"].items():
+        res = json.loads((run / m["results"]).read_text())
+        row = {"val_ap": m["train"].get("val_ap"), "ap3d": res["headline"]["3d"]["0.7"],
+               **{f"ap3d_{b}m": res["distance"]["3d"]["0.7"].get(b) for b in BINS}}
+        rois = run / "predictions" / name / "rois"
+        if "roi" in res["recall"]:
+            row["recall_roi@0.7"] = 100 * res["recall"]["roi"]["0.7"]
+            row["recall_rcnn@0.7"] = 100 * res["recall"]["rcnn"]["0.7"]
+        if rois.is_dir():
+            roi = evaluate(run / "data" / "sotif", rois, split=test, n_bootstrap=1)
+            row["ap3d_proposals"] = roi["headline"]["3d"]["0.7"]
+        rows[name] = row
+    return rows
+
+
+def checks(rows: dict[str, dict]) -> list[tuple[str, bool | None, str]]:
+    """(check, passed or None when the run lacks a model it needs, the numbers)."""
+    out = []
+    val = {n: r["val_ap"] for n, r in rows.items()}
+    for n, v in val.items():
+        out.append((f"{n}: val AP >= 85", None if v is None else v >= 85, f"{v:.1f}" if v is not None else "no val AP"))
+    sec = val.get("second")
+    for n in TWO_STAGE:
+        if n in val:
+            ok = None if sec is None or val[n] is None else val[n] >= sec
+            out.append((f"{n}: val AP >= SECOND", ok, f"{val[n]:.1f} vs {sec:.1f}" if ok is not None else "no SECOND"))
+    for n in TWO_STAGE:
+        r = rows.get(n)
+        if r and "recall_roi@0.7" in r:
+            out.append((f"{n}: recall@0.7 RCNN > RoI", r["recall_rcnn@0.7"] > r["recall_roi@0.7"],
+                        f"{r['recall_rcnn@0.7']:.1f} vs {r['recall_roi@0.7']:.1f}"))
+        if r and "ap3d_proposals" in r:
+            out.append((f"{n}: final AP > proposal AP", r["ap3d"] > r["ap3d_proposals"],
+                        f"{r['ap3d']:.1f} vs {r['ap3d_proposals']:.1f}"))
+    mvx, dv = rows.get("mvx_net"), rows.get("dv_second")
+    if mvx and dv:
+        ok = None if mvx["val_ap"] is None or dv["val_ap"] is None else mvx["val_ap"] >= dv["val_ap"]
+        out.append(("mvx_net: val AP >= DV-SECOND", ok, f"{mvx['val_ap']:.1f} vs {dv['val_ap']:.1f}" if ok is not None else ""))
+        gaps = {b: dv[f"ap3d_{b}m"] - mvx[f"ap3d_{b}m"] for b in BINS}
+        out.append(("mvx_net: within 10 of DV-SECOND in every bin", all(g <= 10 for g in gaps.values()),
+                    ", ".join(f"{b} m {mvx[f'ap3d_{b}m']:.1f} vs {dv[f'ap3d_{b}m']:.1f}" for b in BINS)))
+    pr = rows.get("point_rcnn")
+    if pr:
+        out.append(("point_rcnn: 0-30 m AP >= 30-50 m AP", pr["ap3d_0-30m"] >= pr["ap3d_30-50m"],
+                    f"{pr['ap3d_0-30m']:.1f} vs {pr['ap3d_30-50m']:.1f}"))
+    return out
+
+
+def _fmt(v) -> str:
+    return "" if v is None else f"{v:.1f}"
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("run", type=Path, help="a finished run folder (holds results.json)")
+    p.add_argument("--json", type=Path, help="also write the rows and checks here")
+    a = p.parse_args(argv)
+    if not (a.run / "results.json").is_file():
+        print(f"{a.run}: no results.json (not a finished run folder)", file=sys.stderr)
+        return 2
+    rows = model_rows(a.run)
+    cols = ["val_ap", "ap3d", *(f"ap3d_{b}m" for b in BINS), "ap3d_proposals", "recall_roi@0.7", "recall_rcnn@0.7"]
+    print("| model | " + " | ".join(cols) + " |")
+    print("|---" * (len(cols) + 1) + "|")
+    for n, r in rows.items():
+        print(f"| {n} | " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
+    print()
+    results = checks(rows)
+    for name, ok, numbers in results:
+        print(f"{'n/a ' if ok is None else 'pass' if ok else 'FAIL'}  {name}: {numbers}")
+    if a.json:
+        a.json.write_text(json.dumps({"rows": rows, "checks": [{"check": c, "pass": ok, "numbers": s}
+                                                               for c, ok, s in results]}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

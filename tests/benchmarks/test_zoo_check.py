@@ -1,0 +1,49 @@
+"""benchmarks/zoo_check.py: the zoo issue's checks from a run folder."""
+import json
+
+import pytest
+
+from benchmarks.zoo_check import checks, main, model_rows
+from tests.harness.test_report import make_run
+
+
+def test_rows_from_a_run_folder(tmp_path, capsys):
+    run = make_run(tmp_path / "run", models=(("second", 0.1, False), ("parta2", 0.3, True)))
+    doc = json.loads((run / "results.json").read_text())
+    for name, val in (("second", 80.0), ("parta2", 86.0)):
+        doc["models"][name]["train"]["val_ap"] = val
+    (run / "results.json").write_text(json.dumps(doc))
+    rows = model_rows(run)
+    res = json.loads((run / "results" / "parta2.json").read_text())
+    assert rows["parta2"]["ap3d"] == res["headline"]["3d"]["0.7"]
+    assert rows["parta2"]["ap3d_0-30m"] == res["distance"]["3d"]["0.7"]["0-30"]
+    # the fixture's proposals are its final boxes: the same AP, so "final > proposal" fails
+    assert rows["parta2"]["ap3d_proposals"] == pytest.approx(rows["parta2"]["ap3d"])
+    assert "ap3d_proposals" not in rows["second"]
+    assert main([str(run)]) == 0
+    out = capsys.readouterr().out
+    assert "pass  parta2: val AP >= SECOND: 86.0 vs 80.0" in out
+    assert "FAIL  second: val AP >= 85: 80.0" in out
+    assert "FAIL  parta2: final AP > proposal AP" in out
+
+
+def test_checks_by_hand():
+    bins = lambda a, b, c: {"ap3d_0-30m": a, "ap3d_30-50m": b, "ap3d_50-80m": c}
+    rows = {"second": {"val_ap": 90.0, "ap3d": 70.0, **bins(90, 80, 60)},
+            "dv_second": {"val_ap": 88.0, "ap3d": 70.0, **bins(90, 80, 60)},
+            "mvx_net": {"val_ap": 89.0, "ap3d": 60.0, **bins(85, 69, 60)},
+            "point_rcnn": {"val_ap": 91.0, "ap3d": 72.0, "ap3d_proposals": 65.0, "recall_roi@0.7": 80.0,
+                           "recall_rcnn@0.7": 79.0, **bins(70, 75, 50)}}
+    got = {c: ok for c, ok, _ in checks(rows)}
+    assert got["dv_second: val AP >= 85"] and got["point_rcnn: val AP >= SECOND"]
+    assert got["point_rcnn: final AP > proposal AP"] and not got["point_rcnn: recall@0.7 RCNN > RoI"]
+    assert got["mvx_net: val AP >= DV-SECOND"]
+    assert not got["mvx_net: within 10 of DV-SECOND in every bin"]  # 30-50 m: 69 vs 80
+    assert not got["point_rcnn: 0-30 m AP >= 30-50 m AP"]
+    rows["mvx_net"]["ap3d_30-50m"] = 70.0
+    assert {c: ok for c, ok, _ in checks(rows)}["mvx_net: within 10 of DV-SECOND in every bin"]
+
+
+def test_not_a_run_folder(tmp_path, capsys):
+    assert main([str(tmp_path)]) == 2
+    assert "no results.json" in capsys.readouterr().err
