@@ -68,6 +68,20 @@ def _no_box_on_empty_cloud(model: torch.nn.Module, onnx_path) -> None:
     assert len(run_onnx(onnx_path, empty)[0]) == 0
 
 
+def _random_boxes(rng: np.random.Generator, k: int, spread: float = 20.0) -> np.ndarray:
+    """(k, 7) float32 car-sized boxes, centres uniform in a cube of half-width ``spread``, any yaw."""
+    centre = rng.uniform(-spread, spread, (k, 3))
+    size = rng.uniform([3.0, 1.5, 1.3], [5.0, 2.2, 1.9], (k, 3))
+    yaw = rng.uniform(-np.pi, np.pi, (k, 1))
+    return np.concatenate([centre, size, yaw], 1).astype(np.float32)
+
+
+@pytest.fixture(scope="session")
+def random_boxes():
+    """``random_boxes(rng, k, spread=20.0) -> (k, 7) float32`` car-sized boxes with any yaw."""
+    return _random_boxes
+
+
 @pytest.fixture
 def two_car_scene():
     """``two_car_scene(rng, ground=3000, per_car=300) -> Sample``: ground plane + two cars."""

@@ -8,13 +8,6 @@ from models.nms import (INT32_MAX, MAX_K, SCORE_LEVELS, index_bits, nms_in_order
                         suppression_candidates)
 
 
-def random_boxes(rng, k, spread=20.0):
-    centre = rng.uniform(-spread, spread, (k, 3))
-    size = rng.uniform([3.0, 1.5, 1.3], [5.0, 2.2, 1.9], (k, 3))
-    yaw = rng.uniform(-np.pi, np.pi, (k, 1))
-    return np.concatenate([centre, size, yaw], 1).astype(np.float32)
-
-
 def test_ranked_topk_keys_fit_int32():
     assert (SCORE_LEVELS + 1) * 2 ** index_bits(MAX_K) <= INT32_MAX + 1  # top level, index 0
     scores = torch.rand(70400)
@@ -43,7 +36,7 @@ def test_ranked_topk_breaks_ties_by_index():
     assert len(ranked_topk(torch.zeros(0), 5)) == 0
 
 
-def test_select_ranked_is_greedy_nms_in_rank_order():
+def test_select_ranked_is_greedy_nms_in_rank_order(random_boxes):
     rng = np.random.default_rng(8)
     boxes = random_boxes(rng, 120, 12.0)
     boxes[:, 3:6] *= 1.5  # more overlaps
@@ -72,7 +65,7 @@ def greedy_nms(boxes: np.ndarray, thresh: float) -> list[int]:
     return kept
 
 
-def test_nms_in_order_is_greedy_nms():
+def test_nms_in_order_is_greedy_nms(random_boxes):
     rng = np.random.default_rng(9)
     for k, spread, thresh in [(150, 10.0, 0.7), (150, 10.0, 0.1), (80, 4.0, 0.3), (40, 200.0, 0.1),
                               (1, 5.0, 0.5), (0, 5.0, 0.5)]:
@@ -82,7 +75,7 @@ def test_nms_in_order_is_greedy_nms():
         np.testing.assert_array_equal(got, greedy_nms(boxes, thresh))
 
 
-def test_suppression_candidates_hold_every_overlapping_pair():
+def test_suppression_candidates_hold_every_overlapping_pair(random_boxes):
     rng = np.random.default_rng(10)
     boxes = random_boxes(rng, 200, 8.0)
     boxes[:, 3:5] *= rng.uniform(0.3, 2.0, (200, 2))

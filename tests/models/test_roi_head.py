@@ -13,14 +13,7 @@ from models.roi_head import (SCORE_RULES, OutputConfig, RefineHead, RoITargetCon
                              refine_loss, roi_support, sample_rois, score_loss)
 
 
-def random_boxes(rng, k, spread=20.0):
-    centre = rng.uniform(-spread, spread, (k, 3))
-    size = rng.uniform([3.0, 1.5, 1.3], [5.0, 2.2, 1.9], (k, 3))
-    yaw = rng.uniform(-np.pi, np.pi, (k, 1))
-    return np.concatenate([centre, size, yaw], 1).astype(np.float32)
-
-
-def test_encode_canonical_matches_reference():
+def test_encode_canonical_matches_reference(random_boxes):
     rng = np.random.default_rng(0)
     gt, rois = random_boxes(rng, 50), random_boxes(rng, 50)
     got = encode_canonical(torch.from_numpy(gt), torch.from_numpy(rois)).numpy()
@@ -36,7 +29,7 @@ def test_encode_canonical_matches_reference():
         np.testing.assert_allclose(got[i], want, rtol=1e-4, atol=1e-4)
 
 
-def test_decode_inverts_encode_up_to_heading_flip():
+def test_decode_inverts_encode_up_to_heading_flip(random_boxes):
     rng = np.random.default_rng(1)
     gt, rois = random_boxes(rng, 100), random_boxes(rng, 100)
     gt_t, rois_t = torch.from_numpy(gt), torch.from_numpy(rois)
@@ -47,13 +40,13 @@ def test_decode_inverts_encode_up_to_heading_flip():
     assert np.all(np.abs(iou_3d(back, gt).diagonal() - 1.0) < 1e-3)
 
 
-def test_box_corners_match_harness():
+def test_box_corners_match_harness(random_boxes):
     boxes = random_boxes(np.random.default_rng(2), 30)
     np.testing.assert_allclose(box_corners(torch.from_numpy(boxes)).numpy(), corners_3d(boxes),
                                atol=1e-4)
 
 
-def test_corner_loss_matches_reference_and_ignores_flip():
+def test_corner_loss_matches_reference_and_ignores_flip(random_boxes):
     rng = np.random.default_rng(3)
     gt, pred = random_boxes(rng, 20, 2.0), random_boxes(rng, 20, 2.0)
     got = corner_loss(torch.from_numpy(pred), torch.from_numpy(gt)).numpy()
@@ -67,7 +60,7 @@ def test_corner_loss_matches_reference_and_ignores_flip():
     assert float(same.abs().max()) < 1e-4
 
 
-def test_sample_rois_labels_and_balances():
+def test_sample_rois_labels_and_balances(random_boxes):
     rng = np.random.default_rng(4)
     gt = random_boxes(rng, 3, 15.0)
     proposals = np.concatenate([random_boxes(rng, 80, 20.0), gt + [0.2, 0, 0, 0, 0, 0, 0.05]])
@@ -83,7 +76,7 @@ def test_sample_rois_labels_and_balances():
     assert torch.equal(again.rois, t.rois)  # same seed, same draw
 
 
-def test_sample_rois_without_gt_or_proposals():
+def test_sample_rois_without_gt_or_proposals(random_boxes):
     cfg = RoITargetConfig(per_frame=8)
     rng = np.random.default_rng(5)
     t = sample_rois(random_boxes(rng, 20), np.zeros((0, 7), np.float32), cfg, rng)
@@ -94,7 +87,7 @@ def test_sample_rois_without_gt_or_proposals():
     assert len(t.rois) == 8 and (t.iou.numpy() > 0).any()  # drawn from the jittered copies
 
 
-def test_sample_rois_draws_only_proposals_by_default():
+def test_sample_rois_draws_only_proposals_by_default(random_boxes):
     """No ground-truth copies join the proposals unless a config asks for them (OpenPCDet adds
     none); the draw then holds only rows of the proposals, whatever the foreground share."""
     rng = np.random.default_rng(8)
@@ -174,7 +167,7 @@ def test_iou_score_target_is_a_clamped_ramp():
     np.testing.assert_allclose(iou_score_target(iou, cfg).numpy(), want, atol=1e-6)
 
 
-def test_refine_loss_falls_when_training_the_head():
+def test_refine_loss_falls_when_training_the_head(random_boxes):
     torch.manual_seed(0)
     rng = np.random.default_rng(6)
     gt = random_boxes(rng, 4, 10.0)
@@ -197,7 +190,7 @@ def test_refine_loss_falls_when_training_the_head():
     assert logit.shape == (1,) and deltas.shape == (1, 7)
 
 
-def test_roi_support_matches_points_in_boxes_and_gates_finalize():
+def test_roi_support_matches_points_in_boxes_and_gates_finalize(random_boxes):
     rng = np.random.default_rng(5)
     rois = random_boxes(rng, 16, spread=6.0)
     xyz = rng.uniform(-8, 8, (300, 3)).astype(np.float32)
@@ -214,7 +207,7 @@ def test_roi_support_matches_points_in_boxes_and_gates_finalize():
     assert len(finalize(torch.from_numpy(rois), roi_scores, logit, deltas, cfg)[0]) == 16
 
 
-def test_final_scores_follow_the_configured_rule():
+def test_final_scores_follow_the_configured_rule(random_boxes):
     rng = np.random.default_rng(6)
     roi_scores, logit = rng.uniform(0, 1, 50).astype(np.float32), rng.normal(0, 3, 50).astype(np.float32)
     confidence = 1 / (1 + np.exp(-logit.astype(np.float64)))
