@@ -33,7 +33,8 @@ def model_rows(run: Path) -> dict[str, dict]:
     rows = {}
     for name, m in summary["models"].items():
         res = json.loads((run / m["results"]).read_text())
-        row = {"val_ap": m["train"].get("val_ap"), "ap3d": res["headline"]["3d"]["0.7"],
+        val = m["train"].get("val_ap")  # the checkpoint's {"3d_moderate": ..., "bev_moderate": ..., ...}
+        row = {"val_ap": val.get("3d_moderate") if isinstance(val, dict) else val, "ap3d": res["headline"]["3d"]["0.7"],
                **{f"ap3d_{b}m": res["distance"]["3d"]["0.7"].get(b) for b in BINS}}
         rois = run / "predictions" / name / "rois"
         if "roi" in res["recall"]:

@@ -11,7 +11,7 @@ def test_rows_from_a_run_folder(tmp_path, capsys):
     run = make_run(tmp_path / "run", models=(("second", 0.1, False), ("parta2", 0.3, True)))
     doc = json.loads((run / "results.json").read_text())
     for name, val in (("second", 80.0), ("parta2", 86.0)):
-        doc["models"][name]["train"]["val_ap"] = val
+        doc["models"][name]["train"]["val_ap"] = {"3d_moderate": val, "bev_moderate": val + 5}
     (run / "results.json").write_text(json.dumps(doc))
     rows = model_rows(run)
     res = json.loads((run / "results" / "parta2.json").read_text())
