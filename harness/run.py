@@ -72,10 +72,9 @@ PROFILES = {
 
 # Minutes of each model's jobs in the sample run (docs/performance.md, its stage table's totals): the
 # job pool starts the longest first, so that the jobs end together, and the ETA a run prints scales
-# them by the share of each job still to do. PointRCNN's is the sample run's 24 min with its training
-# doubled: it now samples 8,192 points, where a training step took 2x the one on 4,096 (not yet timed in a run).
-_SAMPLE_MINUTES = {"mvx_net": 47, "pv_rcnn": 39, "second": 28, "dv_second": 28, "pointpillars": 26, "parta2": 25,
-                   "point_rcnn": 43}
+# them by the share of each job still to do.
+_SAMPLE_MINUTES = {"mvx_net": 21, "point_rcnn": 17, "pointpillars": 15, "pv_rcnn": 15, "second": 13, "dv_second": 13,
+                   "parta2": 10}
 
 
 def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:

@@ -54,7 +54,7 @@ TRAIN_CONFIGS = {"tiny": TrainConfig(epochs=2, batch_size=2, lr=3e-3),
 
 # The compact (default-profile) schedule per model: 12-28 minutes of training each on one CPU
 # thread beside another job (255 frames, batch 2), so that the seven-model default run, data and
-# inference included, takes about 105 minutes. Val AP40 3D moderate (45 held-out frames)
+# inference included, takes about an hour (57 min on generator-1.4 data). Val AP40 3D moderate (45 held-out frames)
 # decided the counts: PointPillars 18 epochs (6: 59.2; 12: 83.1, 77.5 in a later run; 18: 85.2; 64 PFN
 # channels instead of 32 made a step 40 % slower and gave 83.5 at 12 epochs); PointRCNN 8 (6: 23.7, 8: 36.4;
 # at 2 it had not learned to segment cars); SECOND and DV-SECOND 6 (at 3 a lottery: SECOND 67.9
