@@ -86,7 +86,7 @@ def cmd_train(a) -> int:
     from harness.train import default_workers, train
     workers = a.workers or default_workers(a.model, a.profile, a.device)
     ckpt = train(a.model, Path(a.data), Path(a.out), profile=a.profile, epochs=a.epochs, device=a.device,
-                 seed=a.seed, progress=not a.quiet, workers=workers, force=a.force)
+                 seed=a.seed, progress=not a.quiet, workers=workers, force=a.force, init_from=a.init_from)
     print(f"checkpoint written to {ckpt}")
     return 0
 
@@ -206,6 +206,9 @@ def _add_train(sub, quiet) -> None:
     s.add_argument("--workers", type=_positive_int,
                    help="data-parallel processes, each with its share of the cores and of every batch "
                         "(default: one per core, at most the batch size; 1 = one process)")
+    s.add_argument("--init-from", metavar="CKPT",
+                   help="start from the weights of this checkpoint that fit by name and shape: a sibling's "
+                        "first stage, e.g. SECOND's for pv_rcnn or parta2, DV-SECOND's for mvx_net")
     s.set_defaults(func=cmd_train)
 
 

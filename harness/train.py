@@ -299,7 +299,7 @@ class _Session:
 
 
 def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None, seed: int,
-             aug: AugmentConfig) -> _Session:
+             aug: AugmentConfig, init_from: Path | None = None) -> _Session:
     cfg = zoo.config(model, profile)
     tcfg = train_config(model, profile)
     # an explicit epoch count is the schedule: `--epochs 8` and a profile of 8 epochs train alike
@@ -308,6 +308,11 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
     if epochs < 1:
         raise ValueError(f"epochs must be >= 1, got {epochs}")
     net = _build(model, profile, seed)
+    warm = None
+    if init_from is not None:  # a sibling's first stage; a changed sibling is another training
+        from harness.stages import file_digest
+        loaded, _ = zoo.warm_start(net, model, init_from)
+        warm = {"init_from": file_digest(init_from), "warm_tensors": len(loaded)}
     ds = KittiDataset(data, "train", with_image=net.uses_camera)
     if len(ds) == 0:
         raise ValueError(f"{data / 'ImageSets' / 'train.txt'}: no training frames")
@@ -315,7 +320,8 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
     database = load_or_build(data, data / "gt_database", aug.gt_sampling) if use_gts else None
     ident = {"model": model, "profile": profile, "data_hash": dataset_hash(data),
              "config_hash": config_hash({"model": asdict(cfg), "train": asdict(tcfg), "epochs": epochs,
-                                         "seed": seed, "augment": asdict(aug), "gt_sampling": use_gts})}
+                                         "seed": seed, "augment": asdict(aug), "gt_sampling": use_gts,
+                                         **({"warm_start": warm} if warm else {})})}
     optimizer = torch.optim.AdamW(net.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
     steps = epochs * math.ceil(len(ds) / tcfg.batch_size)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=tcfg.lr, total_steps=steps,
@@ -380,11 +386,11 @@ def _worker(rank: int, world: int, tmp: str, threads: int, parent: int, args: tu
     the folder ``tmp`` with it); rank 0 writes the checkpoint and shows the progress bar."""
     from harness.run import _job_init
     _job_init(threads, parent)
-    model, data, out, profile, epochs, seed, aug = args
+    model, data, out, profile, epochs, seed, aug, init_from = args
     dist.init_process_group("gloo", init_method=f"file://{tmp}/store", rank=rank, world_size=world,
                             timeout=timedelta(minutes=30))
     try:
-        s = _session(model, data, out, profile, epochs, seed, aug)
+        s = _session(model, data, out, profile, epochs, seed, aug, init_from)
         with _bar(s, model, profile, progress and rank == 0) as bar:
             _fit(s, seed, aug, bar, rank, world)
     except (ValueError, OSError) as e:  # bad input (a malformed frame, say): the message goes to the caller
@@ -427,7 +433,7 @@ def _fit_data_parallel(s: _Session, workers: int, args: tuple, progress: bool) -
 
 def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: int | None = None,
           device: str = "cpu", seed: int = 0, progress: bool = True, aug: AugmentConfig = AugmentConfig(),
-          workers: int = 1, on_epoch=None, force: bool = False) -> Path:
+          workers: int = 1, on_epoch=None, force: bool = False, init_from: Path | None = None) -> Path:
     """Train ``model`` on ``<data>/ImageSets/train.txt``; returns ``<out>/checkpoint.pt``. A file
     there that is not a checkpoint of ``model`` is refused, not replaced, unless ``force``.
     LiDAR-only models get ground-truth sampling (``aug.gt_sampling``, database cached in
@@ -443,6 +449,8 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     with 2 threads, whose convolutions on one frame leave the second core half idle (docs/performance.md).
     ``on_epoch`` (one process only) is called after each epoch's checkpoint, as in ``_fit``.
     Under ``torchrun`` (several GPUs or machines) every launched process is one such worker.
+    ``init_from``: a checkpoint of a sibling model whose matching weights start the training
+    (``models.zoo.warm_start``); its digest is part of the training's identity.
     """
     data, out = Path(data), Path(out)
     batch_size = train_config(model, profile).batch_size
@@ -462,14 +470,14 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     if world > 1 and device == "cuda":
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
     with torch.device(device):
-        s = _session(model, data, out, profile, epochs, seed, aug)
+        s = _session(model, data, out, profile, epochs, seed, aug, None if init_from is None else Path(init_from))
         s.net.to(device)
         if world > 1:
             state = _fit_launched(s, model, profile, seed, aug, progress, device)
             if int(os.environ["RANK"]) != 0:
                 return s.path
         elif workers > 1 and s.done < s.tcfg.epochs:
-            state = _fit_data_parallel(s, workers, (model, data, out, profile, epochs, seed, aug), progress)
+            state = _fit_data_parallel(s, workers, (model, data, out, profile, epochs, seed, aug, init_from), progress)
         else:
             with _bar(s, model, profile, progress) as bar:
                 state = _fit(s, seed, aug, bar, on_epoch=on_epoch)

@@ -105,3 +105,37 @@ def load_checkpoint(path) -> tuple[Detector, dict]:
     model.eval()
     meta = {k: v for k, v in ckpt.items() if k not in ("state_dict", "optimizer")}
     return model, meta
+
+
+# Where a model keeps a sibling's first stage under another name: (prefix in the model, prefix in
+# the sibling's checkpoint). PV-RCNN and Part-A2 call SECOND's anchor head their RPN, and Part-A2's
+# sparse U-Net holds SECOND's 3D backbone as its encoder.
+WARM_START_ALIASES = {"pv_rcnn": (("rpn.", "head."),), "parta2": (("rpn.", "head."), ("unet.encoder.", "backbone3d."))}
+
+
+def warm_start(net: torch.nn.Module, model: str, path) -> tuple[list[str], list[str]]:
+    """Load into ``net`` (a ``model``) every tensor of the checkpoint at ``path`` whose name (after
+    ``WARM_START_ALIASES``) and shape match one of ``net``'s: a first stage trained as its one-stage
+    sibling (PV-RCNN's or Part-A2's from SECOND, MVX-Net's LiDAR network from DV-SECOND), the rest
+    as initialised. Returns (loaded names, names left as they were). A checkpoint from which nothing
+    fits is refused."""
+    path = Path(path)
+    ckpt = read_checkpoint(path)
+    if "state_dict" not in ckpt:
+        raise CheckpointError(f"{path}: checkpoint lacks state_dict")
+    source = ckpt["state_dict"]
+    own = net.state_dict()
+    take, loaded, kept = {}, [], []
+    for name, tensor in own.items():
+        candidates = [name] + [src + name[len(dst):] for dst, src in WARM_START_ALIASES.get(model, ())
+                               if name.startswith(dst)]
+        hit = next((c for c in candidates if c in source and source[c].shape == tensor.shape), None)
+        if hit is None:
+            kept.append(name)
+        else:
+            take[name] = source[hit]
+            loaded.append(name)
+    if not any(own[n].is_floating_point() for n in loaded):
+        raise CheckpointError(f"{path}: no weights of this {ckpt.get('model', 'unknown')!r} checkpoint fit {model!r}")
+    net.load_state_dict(take, strict=False)
+    return loaded, kept

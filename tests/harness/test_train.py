@@ -228,3 +228,51 @@ def test_a_torchrun_launch_trains_as_the_spawned_workers(tmp_path):
     assert b["final_loss"] == pytest.approx(a["final_loss"], rel=1e-5)
     for k, v in a["state_dict"].items():
         assert torch.allclose(v.float(), b["state_dict"][k].float(), rtol=1e-5, atol=1e-6), k
+
+
+@pytest.mark.parametrize("model,sibling,aliases", [("pv_rcnn", "second", {"rpn.": "head."}),
+                                                   ("parta2", "second", {"rpn.": "head.", "unet.encoder.": "backbone3d."}),
+                                                   ("mvx_net", "dv_second", {})])
+def test_warm_start_takes_the_siblings_first_stage(tmp_path, model, sibling, aliases):
+    torch.manual_seed(0)
+    src = zoo.build(sibling, "tiny")
+    torch.save({"model": sibling, "state_dict": src.state_dict()}, tmp_path / "sibling.pt")
+    torch.manual_seed(1)
+    net = zoo.build(model, "tiny")
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    loaded, kept = zoo.warm_start(net, model, tmp_path / "sibling.pt")
+    source = src.state_dict()
+    for name, tensor in net.state_dict().items():  # brute force: the sibling's tensor under the renamed name
+        renamed = next((src_p + name[len(p):] for p, src_p in aliases.items() if name.startswith(p)), name)
+        fits = renamed in source and source[renamed].shape == tensor.shape
+        assert (name in loaded) == fits and (name in kept) == (not fits), name
+        assert torch.equal(tensor, source[renamed] if fits else before[name]), name
+    assert any(n.startswith(("backbone2d.", "rpn.", "head.")) for n in loaded)
+    assert any(n.startswith(("rcnn.", "refine.", "image_branch.")) for n in kept)  # the parts the sibling lacks
+
+
+def test_warm_start_refuses_a_checkpoint_that_does_not_fit(tmp_path):
+    torch.save({"model": "second", "state_dict": zoo.build("second", "tiny").state_dict()}, tmp_path / "s.pt")
+    with pytest.raises(zoo.CheckpointError, match=r"s\.pt: no weights of this 'second' checkpoint fit 'point_rcnn'"):
+        zoo.warm_start(zoo.build("point_rcnn", "tiny"), "point_rcnn", tmp_path / "s.pt")
+
+
+def test_train_init_from_a_sibling_is_its_own_training(tmp_path, capsys):
+    from harness.cli import main
+    data = write_synthetic_dataset(tmp_path / "data", frames=3, seed=0)
+    second = train("second", data, tmp_path / "second", profile="tiny", epochs=1, seed=0, progress=False)
+    args = ["train", "--model", "pv_rcnn", "--data", str(data), "--profile", "tiny", "--epochs", "1", "--quiet",
+            "--workers", "1"]
+    assert main(args + ["--out", str(tmp_path / "warm"), "--init-from", str(second)]) == 0
+    assert main(args + ["--out", str(tmp_path / "cold")]) == 0
+    warm = torch.load(tmp_path / "warm" / "checkpoint.pt", weights_only=False)
+    cold = torch.load(tmp_path / "cold" / "checkpoint.pt", weights_only=False)
+    assert warm["config_hash"] != cold["config_hash"]  # a warm start (and a changed sibling) is another training
+    # the warm start changed where training began: the first-stage weights differ from the cold run's
+    assert not torch.equal(warm["state_dict"]["rpn.conv_cls.weight"], cold["state_dict"]["rpn.conv_cls.weight"])
+    mtime = (tmp_path / "warm" / "checkpoint.pt").stat().st_mtime_ns
+    assert main(args + ["--out", str(tmp_path / "warm"), "--init-from", str(second)]) == 0  # resumed: complete
+    assert (tmp_path / "warm" / "checkpoint.pt").stat().st_mtime_ns == mtime
+    capsys.readouterr()
+    assert main(args + ["--out", str(tmp_path / "x"), "--init-from", str(tmp_path / "missing.pt")]) == 2
+    assert "missing.pt: checkpoint not found" in capsys.readouterr().err
