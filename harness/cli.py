@@ -150,7 +150,8 @@ def cmd_evaluate(a) -> int:
 def cmd_run(a) -> int:
     from harness.run import run
     out = run(profile=a.profile, models=_nonempty_csv(a.models, "--models"), out=Path(a.out) if a.out else None,
-              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, seeds=a.seeds, lidar_model=a.lidar_model)
+              progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, seeds=a.seeds, lidar_model=a.lidar_model,
+              warm_start=a.warm_start or None)
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -265,6 +266,9 @@ def _add_run(sub, quiet) -> None:
                         "the paper's protocol (the data sets, and so every stage after them, are made again)")
     s.add_argument("--seeds", type=_positive_int,
                    help="training draws per model, seeds 0..K-1 (default 1); the tables show their mean and range")
+    s.add_argument("--warm-start", action="store_true",
+                   help="start PV-RCNN and Part-A2 from the run's SECOND, MVX-Net from its DV-SECOND "
+                        "(those train first; a changed sibling retrains them)")
     s.set_defaults(func=cmd_run)
 
 

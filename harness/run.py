@@ -53,6 +53,20 @@ class RunConfig:
     bootstrap: int = 200
     lidar_model: str = "physics"
     seeds: int = 1  # training draws per model: seeds seed .. seed + seeds - 1
+    warm_start: bool = False  # two-stage and fusion models start from their one-stage sibling (WARM_FROM)
+
+
+# With ``warm_start``, these models' trainings start from the same draw of their sibling's
+# checkpoint (``train --init-from``): the sibling trains first, and a changed sibling retrains them.
+WARM_FROM = {"pv_rcnn": "second", "parta2": "second", "mvx_net": "dv_second"}
+
+
+def _sibling(cfg: RunConfig, tag: str) -> str | None:
+    """The tag whose checkpoint starts ``tag``'s training (None: a cold start)."""
+    name = _model_of(tag)
+    if not cfg.warm_start or name not in WARM_FROM:
+        return None
+    return WARM_FROM[name] + tag[len(name):]  # the same draw's suffix
 
 
 def draw_tag(name: str, draw: int) -> str:
@@ -99,12 +113,15 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train
     ckpt = ckpt_dir / "checkpoint.pt"
     schedule = asdict(train_config(name, cfg.model_profile))
     seed = cfg.seed + draw
+    sibling = _sibling(cfg, tag)
+    init = run_dir / "models" / sibling / "checkpoint.pt" if sibling else None
+    warm = {"init_from": {"model": sibling, "checkpoint": file_digest(init)}} if init else {}
     tinfo = stages.run(f"train_{tag}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
                                          "schedule": schedule, "model_config": asdict(config(name, cfg.model_profile)),
-                                         "data": train_hash, "seed": seed},
+                                         "data": train_hash, "seed": seed, **warm},
                        lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt_dir,
                                                         profile=cfg.model_profile, epochs=cfg.epochs,
-                                                        device=cfg.device, seed=seed,
+                                                        device=cfg.device, seed=seed, init_from=init,
                                                         progress=stages.bars, on_epoch=stages.epoch_line(tag)))},
                        outputs=[ckpt])
     onnx_path = run_dir / "models" / f"{tag}.onnx"
@@ -242,30 +259,34 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
     say = (lambda msg: print(msg, flush=True)) if progress else (lambda msg: None)
     draws = {draw_tag(n, d): d for d in range(cfg.seeds) for n in models}
     names = list(draws)
+    deps = {n: [d for d in [_sibling(cfg, n)] if d in draws] for n in names}  # siblings trained in this run
+    for n in names:
+        sib = _sibling(cfg, n)
+        if sib and sib not in draws and not (run_dir / "models" / sib / "checkpoint.pt").is_file():
+            raise ValueError(f"--warm-start: {n} starts from {sib}, which is neither among the models of this run "
+                             f"nor trained in {run_dir} (add {_model_of(sib)} to --models)")
     jobs = max(1, min(cfg.jobs, len(names)))
-    order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(_model_of(n), 10)) if jobs > 1 else list(names)
+    order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(_model_of(n), 10)) if jobs > 1 else \
+        sorted(names, key=lambda n: bool(deps[n]))  # one slot: siblings first
     minutes = {n: _SAMPLE_MINUTES.get(_model_of(n), 10) * _work_left(cfg, run_dir, n) for n in names}
     done: dict[str, tuple[dict, dict]] = {}
-    starts: dict[str, float] = {}  # a job starts when a slot frees: the pool takes them in order
+    starts: dict[str, float] = {}  # a job starts when a slot frees and its sibling is done
     ends: dict[str, float] = {}
 
-    def start_next(now: float) -> None:
-        queued = [n for n in order if n not in starts]
-        if queued:
-            starts[queued[0]] = now
+    def next_ready() -> str | None:
+        return next((n for n in order if n not in starts and all(d in done for d in deps[n])), None)
 
     def finished(name: str, result) -> None:
         done[name] = result
         now = time.perf_counter()
         ends[name] = now
-        start_next(now)
         left = _eta_seconds(order, minutes, starts, ends, now, jobs) if len(done) < len(names) else None
         eta = f", ETA {left:.0f} s" if left is not None else ""
         say(f"== {name} done ({len(done)}/{len(names)} models, elapsed {now - t0:.0f} s{eta})")
 
     if jobs == 1:
-        start_next(time.perf_counter())
-        for i, name in enumerate(names, 1):
+        for i, name in enumerate(order, 1):
+            starts[name] = time.perf_counter()
             say(f"== model {i}/{len(names)}: {name} (elapsed {time.perf_counter() - t0:.0f} s)")
             finished(name, _model_job(cfg, run_dir, name, train_hash, sotif_hash, runtime, progress, None, progress,
                                       draws[name]))
@@ -275,15 +296,22 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
     say(f"== {len(names)} models, {jobs} at a time with {threads} thread(s) each: {', '.join(order)}")
     with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_job_init,
                              initargs=(threads, os.getpid())) as pool:
-        for _ in range(jobs):
-            start_next(time.perf_counter())
-        pending = {pool.submit(_model_job, cfg, run_dir, n, train_hash, sotif_hash, runtime, progress, threads,
-                               False, draws[n]): n for n in order}
+        pending = {}
+
+        def submit_ready() -> None:  # fill the free slots with jobs whose siblings are done
+            while len(pending) < jobs and (name := next_ready()) is not None:
+                starts[name] = time.perf_counter()
+                pending[pool.submit(_model_job, cfg, run_dir, name, train_hash, sotif_hash, runtime, progress,
+                                    threads, False, draws[name])] = name
+
+        submit_ready()
         try:
             while pending:
                 ready, _ = wait(pending, return_when=FIRST_COMPLETED)
                 for fut in ready:
-                    finished(pending.pop(fut), fut.result())
+                    name = pending.pop(fut)
+                    finished(name, fut.result())
+                submit_ready()
         except BaseException:
             # the jobs stop too (a SIGINT sent to this process alone would otherwise let them train
             # on, and the pool's queue would start more): what they wrote stays, atomic files
@@ -368,19 +396,22 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
 
 def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
         config: RunConfig | None = None, jobs: int | None = None, seeds: int | None = None,
-        lidar_model: str | None = None) -> Path:
+        lidar_model: str | None = None, warm_start: bool | None = None) -> Path:
     """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory.
 
     ``config`` replaces the profile's RunConfig (tests use a smaller one); ``jobs`` its number of
     models run at once (not part of any stage key: changing it redoes nothing); ``seeds`` its
     number of training draws per model; ``lidar_model`` "carla" simulates every data set with
-    CARLA's weather-blind LiDAR (the paper's protocol)."""
+    CARLA's weather-blind LiDAR (the paper's protocol); ``warm_start`` starts PV-RCNN and Part-A2
+    from the run's SECOND and MVX-Net from its DV-SECOND (``WARM_FROM``), which then train first."""
     from harness.report import render
     cfg, names, run_dir = resolve(profile, models, out, config)
     if jobs is not None:
         cfg = replace(cfg, jobs=jobs)
     if lidar_model is not None:
         cfg = replace(cfg, lidar_model=lidar_model)
+    if warm_start is not None:
+        cfg = replace(cfg, warm_start=warm_start)
     if seeds is not None:
         if seeds < 1:
             raise ValueError(f"seeds must be >= 1, got {seeds}")

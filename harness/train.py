@@ -328,7 +328,8 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
                                                     pct_start=0.4, div_factor=10, final_div_factor=100)
     path = out / "checkpoint.pt"
     done, spent, history = _resume(path, net, optimizer, scheduler, ident)  # spent: s before this call
-    return _Session(net, ds, database, tcfg, ident, {"config": asdict(cfg), "epochs": epochs, "seed": seed},
+    return _Session(net, ds, database, tcfg, ident, {"config": asdict(cfg), "epochs": epochs, "seed": seed,
+                                                     **({"warm_start": warm} if warm else {})},
                     optimizer, scheduler, path, done, spent, steps, history)
 
 

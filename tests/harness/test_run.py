@@ -253,3 +253,34 @@ def test_an_interrupted_job_process_takes_no_queued_job():
                          cwd=Path(__file__).parents[2])
     assert out.stdout.split(None, 2)[:2] == ["KeyboardInterrupt", "KeyboardInterrupt"], out.stderr
     assert "the run was interrupted" in out.stdout and out.stdout.strip().endswith("True")
+
+
+def test_warm_start_trains_the_sibling_first_and_starts_from_it(tmp_path, monkeypatch):
+    import harness.run as hr
+    cfg = replace(TINY, warm_start=True)
+    order = []
+    monkeypatch.setattr(hr, "_model_job", lambda c, d, name, *a: order.append(name) or ({}, {}))
+    hr._model_jobs(cfg, tmp_path, ["pv_rcnn", "mvx_net", "point_rcnn", "dv_second", "second"], "", "", "onnxruntime",
+                   False, 0.0)
+    assert order.index("second") < order.index("pv_rcnn") and order.index("dv_second") < order.index("mvx_net")
+    with pytest.raises(ValueError, match="--warm-start: pv_rcnn starts from second, which is neither among the models"):
+        hr._model_jobs(cfg, tmp_path, ["pv_rcnn"], "", "", "onnxruntime", False, 0.0)
+    order.clear()
+    hr._model_jobs(replace(cfg, warm_start=False), tmp_path, ["pv_rcnn"], "", "", "onnxruntime", False, 0.0)
+    assert order == ["pv_rcnn"]  # a cold start needs no sibling
+    # the sibling's checkpoint (the same draw's) starts the training, and its digest is in the stage key
+    sibling = tmp_path / "models" / "second.seed1" / "checkpoint.pt"
+    sibling.parent.mkdir(parents=True)
+    sibling.write_bytes(b"weights")
+    seen = {}
+
+    def train(*a, **k):
+        seen.update(k)
+        raise KeyboardInterrupt
+
+    monkeypatch.undo()  # the real model job, with a training that records its arguments
+    monkeypatch.setattr("harness.train.train", train)
+    with pytest.raises(KeyboardInterrupt):
+        hr._model_job(cfg, tmp_path, "pv_rcnn.seed1", "h", "h", "onnxruntime", False, None, False, 1)
+    assert seen["init_from"] == sibling and seen["seed"] == cfg.seed + 1
+    assert hr._sibling(cfg, "point_rcnn") is None and hr._sibling(cfg, "mvx_net.seed2") == "dv_second.seed2"
