@@ -23,7 +23,7 @@ from models.point_rcnn import CONFIGS, PointRCNN
 from models.pointnet2 import farthest_point_sample
 from models.voxelize import range_mask
 
-DISTANCES = (6.0, 12.0, 21.0, 45.0)  # m, the cars the issue quotes
+DISTANCES = (6.0, 12.0, 21.0, 45.0)  # m, near and far cars of the SOTIF frames
 
 
 def car_counts(model: PointRCNN, sample) -> list[tuple[float, int, int]]:

@@ -4,7 +4,7 @@ Per model: validation AP40 3D moderate (the checkpoint's, on held-out dry frames
 headline 3D AP at IoU 0.7 and its distance bins; for two-stage models the recall at the proposals
 (RoI) and at the refined boxes (RCNN) at IoU 0.7, and the AP of the proposals alone (their KITTI
 result files, ``predictions/<model>/rois/``, evaluated here) beside the AP of the final boxes. Then
-the checks of the zoo issue, each printed as ``pass``/``FAIL`` with its numbers:
+the zoo's ranking checks, each printed as ``pass``/``FAIL`` with its numbers:
 
 - val AP40 3D moderate >= 85 for every model;
 - Part-A2, PV-RCNN and PointRCNN at or above SECOND (val AP);
