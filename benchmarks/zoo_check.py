@@ -21,8 +21,9 @@ import json
 import sys
 from pathlib import Path
 
+from harness.tables import DISTANCE_BINS as BINS  # "0-30", "30-50", "50-80" (m)
+
 TWO_STAGE = ("parta2", "pv_rcnn", "point_rcnn")
-BINS = ("0-30", "30-50", "50-80")  # harness.evaluate.DISTANCE_BINS, metres
 
 
 def model_rows(run: Path) -> dict[str, dict]:
@@ -57,7 +58,8 @@ def checks(rows: dict[str, dict]) -> list[tuple[str, bool | None, str]]:
     for n in TWO_STAGE:
         if n in val:
             ok = None if sec is None or val[n] is None else val[n] >= sec
-            out.append((f"{n}: val AP >= SECOND", ok, f"{val[n]:.1f} vs {sec:.1f}" if ok is not None else "no SECOND"))
+            out.append((f"{n}: val AP >= SECOND", ok, f"{val[n]:.1f} vs {sec:.1f}" if ok is not None
+                        else "no val AP of SECOND" if sec is None else "no val AP"))
     for n in TWO_STAGE:
         r = rows.get(n)
         if r and "recall_roi@0.7" in r:

@@ -259,22 +259,24 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
     say = (lambda msg: print(msg, flush=True)) if progress else (lambda msg: None)
     draws = {draw_tag(n, d): d for d in range(cfg.seeds) for n in models}
     names = list(draws)
-    deps = {n: [d for d in [_sibling(cfg, n)] if d in draws] for n in names}  # siblings trained in this run
+    waits = {}  # the sibling a job waits for: one trained in this run (an earlier run's checkpoint waits for nothing)
     for n in names:
         sib = _sibling(cfg, n)
-        if sib and sib not in draws and not (run_dir / "models" / sib / "checkpoint.pt").is_file():
+        if sib in draws:
+            waits[n] = sib
+        elif sib and not (run_dir / "models" / sib / "checkpoint.pt").is_file():
             raise ValueError(f"--warm-start: {n} starts from {sib}, which is neither among the models of this run "
                              f"nor trained in {run_dir} (add {_model_of(sib)} to --models)")
     jobs = max(1, min(cfg.jobs, len(names)))
     order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(_model_of(n), 10)) if jobs > 1 else \
-        sorted(names, key=lambda n: bool(deps[n]))  # one slot: siblings first
+        sorted(names, key=lambda n: n in waits)  # one slot: siblings first
     minutes = {n: _SAMPLE_MINUTES.get(_model_of(n), 10) * _work_left(cfg, run_dir, n) for n in names}
     done: dict[str, tuple[dict, dict]] = {}
     starts: dict[str, float] = {}  # a job starts when a slot frees and its sibling is done
     ends: dict[str, float] = {}
 
     def next_ready() -> str | None:
-        return next((n for n in order if n not in starts and all(d in done for d in deps[n])), None)
+        return next((n for n in order if n not in starts and (n not in waits or waits[n] in done)), None)
 
     def finished(name: str, result) -> None:
         done[name] = result

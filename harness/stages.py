@@ -10,17 +10,13 @@ left, so a damaged file is made anew and a sound one is kept.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import sys
 import time
 from pathlib import Path
 
+from harness.dataset import config_hash
 from harness.kitti import atomic_write_text
-
-
-def digest(obj) -> str:
-    return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def file_digest(path: Path) -> str:
@@ -54,14 +50,14 @@ class Stages:
 
     def outputs_digest(self, name: str) -> str:
         """One hash of the files stage ``name`` wrote (for the key of a stage that reads them)."""
-        return digest((self.record(name) or {}).get("outputs"))
+        return config_hash((self.record(name) or {}).get("outputs"))
 
     def hashes(self, outputs) -> dict[str, str]:
         return {p.relative_to(self.root).as_posix(): file_digest(p) for o in outputs for p in _files(Path(o))}
 
     def run(self, name: str, key, fn, outputs=()) -> dict:
         """Run ``fn() -> dict`` unless the stage's record has the same key and its outputs are as it wrote them."""
-        key = digest(key)
+        key = config_hash(key)
         rec = self.record(name)
         if rec and rec.get("key") == key:
             damaged = self._damaged(rec.get("outputs"), outputs)

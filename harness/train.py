@@ -308,11 +308,11 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
     if epochs < 1:
         raise ValueError(f"epochs must be >= 1, got {epochs}")
     net = _build(model, profile, seed)
-    warm = None
-    if init_from is not None:  # a sibling's first stage; a changed sibling is another training
+    warm = {}  # a sibling's first stage, part of the identity: a changed sibling is another training
+    if init_from is not None:
         from harness.stages import file_digest
         loaded, _ = zoo.warm_start(net, model, init_from)
-        warm = {"init_from": file_digest(init_from), "warm_tensors": len(loaded)}
+        warm = {"warm_start": {"init_from": file_digest(init_from), "warm_tensors": len(loaded)}}
     ds = KittiDataset(data, "train", with_image=net.uses_camera)
     if len(ds) == 0:
         raise ValueError(f"{data / 'ImageSets' / 'train.txt'}: no training frames")
@@ -320,16 +320,14 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
     database = load_or_build(data, data / "gt_database", aug.gt_sampling) if use_gts else None
     ident = {"model": model, "profile": profile, "data_hash": dataset_hash(data),
              "config_hash": config_hash({"model": asdict(cfg), "train": asdict(tcfg), "epochs": epochs,
-                                         "seed": seed, "augment": asdict(aug), "gt_sampling": use_gts,
-                                         **({"warm_start": warm} if warm else {})})}
+                                         "seed": seed, "augment": asdict(aug), "gt_sampling": use_gts, **warm})}
     optimizer = torch.optim.AdamW(net.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
     steps = epochs * math.ceil(len(ds) / tcfg.batch_size)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=tcfg.lr, total_steps=steps,
                                                     pct_start=0.4, div_factor=10, final_div_factor=100)
     path = out / "checkpoint.pt"
     done, spent, history = _resume(path, net, optimizer, scheduler, ident)  # spent: s before this call
-    return _Session(net, ds, database, tcfg, ident, {"config": asdict(cfg), "epochs": epochs, "seed": seed,
-                                                     **({"warm_start": warm} if warm else {})},
+    return _Session(net, ds, database, tcfg, ident, {"config": asdict(cfg), "epochs": epochs, "seed": seed, **warm},
                     optimizer, scheduler, path, done, spent, steps, history)
 
 
@@ -454,6 +452,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     (``models.zoo.warm_start``); its digest is part of the training's identity.
     """
     data, out = Path(data), Path(out)
+    init_from = None if init_from is None else Path(init_from)
     batch_size = train_config(model, profile).batch_size
     if not 1 <= workers <= batch_size:
         raise ValueError(f"workers must be between 1 and the batch size {batch_size}, got {workers}")
@@ -471,7 +470,7 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     if world > 1 and device == "cuda":
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
     with torch.device(device):
-        s = _session(model, data, out, profile, epochs, seed, aug, None if init_from is None else Path(init_from))
+        s = _session(model, data, out, profile, epochs, seed, aug, init_from)
         s.net.to(device)
         if world > 1:
             state = _fit_launched(s, model, profile, seed, aug, progress, device)
