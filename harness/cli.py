@@ -151,7 +151,7 @@ def cmd_run(a) -> int:
     from harness.run import run
     out = run(profile=a.profile, models=_nonempty_csv(a.models, "--models"), out=Path(a.out) if a.out else None,
               progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, seeds=a.seeds, lidar_model=a.lidar_model,
-              warm_start=a.warm_start or None)
+              warm_start=a.warm_start)
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -266,9 +266,10 @@ def _add_run(sub, quiet) -> None:
                         "the paper's protocol (the data sets, and so every stage after them, are made again)")
     s.add_argument("--seeds", type=_positive_int,
                    help="training draws per model, seeds 0..K-1 (default 1); the tables show their mean and range")
-    s.add_argument("--warm-start", action="store_true",
+    s.add_argument("--warm-start", action=argparse.BooleanOptionalAction, default=None,
                    help="start PV-RCNN and Part-A2 from the run's SECOND, MVX-Net from its DV-SECOND "
-                        "(those train first; a changed sibling retrains them)")
+                        "(those train first, and are trained too when --models leaves them out; a changed "
+                        "sibling retrains them); on in the quick and default profiles, off in full")
     s.set_defaults(func=cmd_run)
 
 

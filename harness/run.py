@@ -53,7 +53,7 @@ class RunConfig:
     bootstrap: int = 200
     lidar_model: str = "physics"
     seeds: int = 1  # training draws per model: seeds seed .. seed + seeds - 1
-    warm_start: bool = False  # two-stage and fusion models start from their one-stage sibling (WARM_FROM)
+    warm_start: bool = True  # two-stage and fusion models start from their one-stage sibling (WARM_FROM)
 
 
 # With ``warm_start``, these models' trainings start from the same draw of their sibling's
@@ -69,6 +69,20 @@ def _sibling(cfg: RunConfig, tag: str) -> str | None:
     return WARM_FROM[name] + tag[len(name):]  # the same draw's suffix
 
 
+def with_siblings(cfg: RunConfig, run_dir: Path, names: list[str], progress: bool = True) -> list[str]:
+    """``names`` and, with ``warm_start``, the siblings their trainings start from that neither ``names``
+    nor ``run_dir`` holds (``run --models pv_rcnn`` also trains SECOND, as the default run does)."""
+    extra = []
+    for name in names:
+        sib = _sibling(cfg, name)
+        if sib and sib not in names + extra and not (run_dir / "models" / sib / "checkpoint.pt").is_file():
+            extra.append(sib)
+            if progress:
+                print(f"{name} starts from {sib}'s first stage: {sib} is trained too (--no-warm-start: "
+                      f"{name} from nothing)", flush=True)
+    return names + extra
+
+
 def draw_tag(name: str, draw: int) -> str:
     """The file and stage name of a model's training draw (the model's own name for draw 0)."""
     return name if draw == 0 else f"{name}.seed{draw}"
@@ -81,14 +95,16 @@ def _model_of(tag: str) -> str:
 PROFILES = {
     "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3),
     "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20),
-    "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1),
+    # the references train every model from nothing: so does the full profile
+    "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1,
+                      warm_start=False),
 }
 
 # Minutes of each model's jobs in the sample run (docs/performance.md, its stage table's totals): the
 # job pool starts the longest first, so that the jobs end together, and the ETA a run prints scales
 # them by the share of each job still to do.
-_SAMPLE_MINUTES = {"mvx_net": 21, "point_rcnn": 17, "pointpillars": 15, "pv_rcnn": 15, "second": 13, "dv_second": 13,
-                   "parta2": 10}
+_SAMPLE_MINUTES = {"mvx_net": 22, "point_rcnn": 23, "pointpillars": 15, "pv_rcnn": 26, "second": 24, "dv_second": 24,
+                   "parta2": 24}
 
 
 def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
@@ -111,9 +127,9 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train
     name = _model_of(tag)
     ckpt_dir = run_dir / "models" / tag
     ckpt = ckpt_dir / "checkpoint.pt"
-    schedule = asdict(train_config(name, cfg.model_profile))
     seed = cfg.seed + draw
     sibling = _sibling(cfg, tag)
+    schedule = asdict(train_config(name, cfg.model_profile, warm=sibling is not None))
     init = run_dir / "models" / sibling / "checkpoint.pt" if sibling else None
     warm = {"init_from": {"model": sibling, "checkpoint": file_digest(init)}} if init else {}
     tinfo = stages.run(f"train_{tag}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
@@ -419,6 +435,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
             raise ValueError(f"seeds must be >= 1, got {seeds}")
         cfg = replace(cfg, seeds=seeds)
     profile = cfg.profile
+    names = with_siblings(cfg, run_dir, names, progress)
     run_dir.mkdir(parents=True, exist_ok=True)
     with folder_lock(run_dir, "run"):
         stale = remove_temp_files(run_dir)

@@ -37,8 +37,11 @@ from models.voxelize import Grid, hard_voxelize
 
 @dataclass(frozen=True)
 class PartA2Config:
-    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.8)  # x0 y0 z0 x1 y1 z1, m
-    voxel_size: tuple[float, float, float] = (0.4, 0.4, 0.4)  # m
+    # SECOND's range and voxels: the encoder is a SECOND backbone, and the run starts it and the RPN from
+    # the run's SECOND (0.4 m voxels: about 25 voxel centres per car in the RoI pooling; val 48.7 cold,
+    # 63.6 warm; at 0.2 m warm, per-epoch AP 11.6, 35.4 after two epochs against 7.8, 6.5 at 0.4 m)
+    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.0)  # x0 y0 z0 x1 y1 z1, m
+    voxel_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # m
     max_points: int = 5  # per voxel
     max_voxels: int = 40000
     backbone3d: VoxelBackboneConfig = VoxelBackboneConfig(

@@ -43,8 +43,10 @@ from models.voxelize import Grid, hard_voxelize
 
 @dataclass(frozen=True)
 class PVRCNNConfig:
-    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.8)  # x0 y0 z0 x1 y1 z1, m
-    voxel_size: tuple[float, float, float] = (0.4, 0.4, 0.4)  # m
+    # SECOND's range and voxels: its first stage is a SECOND, and the run starts it from the run's SECOND
+    # (0.4 m voxels: val 68.1, SOTIF headline 46.6; 0.2 m from SECOND, 6 epochs: 93.2 and 67.7)
+    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.0)  # x0 y0 z0 x1 y1 z1, m
+    voxel_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # m
     max_points: int = 5  # per voxel
     max_voxels: int = 40000
     backbone3d: VoxelBackboneConfig = VoxelBackboneConfig(

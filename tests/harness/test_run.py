@@ -255,6 +255,20 @@ def test_an_interrupted_job_process_takes_no_queued_job():
     assert "the run was interrupted" in out.stdout and out.stdout.strip().endswith("True")
 
 
+def test_a_warm_started_model_brings_its_sibling_unless_the_run_holds_it(tmp_path, capsys):
+    import harness.run as hr
+    assert PROFILES["default"].warm_start and PROFILES["quick"].warm_start and not PROFILES["full"].warm_start
+    cfg = replace(TINY, warm_start=True)
+    assert hr.with_siblings(cfg, tmp_path, ["pv_rcnn", "parta2", "mvx_net"]) == \
+        ["pv_rcnn", "parta2", "mvx_net", "second", "dv_second"]
+    assert "pv_rcnn starts from second's first stage: second is trained too" in capsys.readouterr().out
+    assert hr.with_siblings(cfg, tmp_path, ["second", "pv_rcnn"]) == ["second", "pv_rcnn"]
+    assert hr.with_siblings(replace(cfg, warm_start=False), tmp_path, ["pv_rcnn"]) == ["pv_rcnn"]
+    (tmp_path / "models" / "second").mkdir(parents=True)
+    (tmp_path / "models" / "second" / "checkpoint.pt").write_bytes(b"weights")  # trained by an earlier run
+    assert hr.with_siblings(cfg, tmp_path, ["pv_rcnn"], progress=False) == ["pv_rcnn"]
+
+
 def test_warm_start_trains_the_sibling_first_and_starts_from_it(tmp_path, monkeypatch):
     import harness.run as hr
     cfg = replace(TINY, warm_start=True)

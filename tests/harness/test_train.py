@@ -47,6 +47,7 @@ def test_compact_schedule_is_per_model_and_other_profiles_are_shared():
         assert train_config(name, "compact").lr == TRAIN_CONFIGS["compact"].lr
         assert train_config(name, "tiny") == TRAIN_CONFIGS["tiny"]
         assert train_config(name, "kitti").lr == {"parta2": 0.01, "pv_rcnn": 0.01, "point_rcnn": 0.01}.get(name, 3e-3)
+        assert train_config(name, "compact", warm=True).lr == {"mvx_net": 1e-3}.get(name, 3e-3)
     with pytest.raises(ValueError, match="unknown profile 'huge'"):
         train_config("second", "huge")
 
