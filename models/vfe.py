@@ -9,13 +9,11 @@ exporter turns into ONNX ScatterND / ScatterElements with a reduction.
 """
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor, nn
 
 from models.base import training_form
-from models.voxelize import Grid, Voxels, slot_in_voxel, take_rows
+from models.voxelize import Grid, Voxels, take_rows
 
 
 def scatter_sum(values: Tensor, index: Tensor, n: int) -> Tensor:
@@ -48,35 +46,28 @@ def scatter_max_nonneg(values: Tensor, index: Tensor, n: int) -> Tensor:
 DENSE_SLOTS = 8  # dynamic voxels: points per voxel that voxel_max_nonneg lays out densely
 
 
-def voxel_max_nonneg(values: Tensor, voxels: Voxels, slot: Tensor | None = None) -> Tensor:
+def voxel_max_nonneg(values: Tensor, voxels: Voxels) -> Tensor:
     """(V, C) per-voxel maxima of NON-NEGATIVE point values (P, C).
 
-    The points are laid out as a dense (V, T, C) tensor by their rank in their voxel (``slot``)
-    and reduced over T: a slot -> point table (scatter of P integers), then one row gather,
-    which onnxruntime runs much faster than a per-element ScatterElements max or a ScatterND of
-    whole rows. Hard voxels carry their slots (T = max_points); for dynamic voxels ``slot`` is
-    :func:`dynamic_slots` (computed once per frame by the caller, or here), T = DENSE_SLOTS, and
-    the few points beyond (dense voxels near the sensor) are added by ScatterElements max. Under
-    autograd the scatter form runs: same values and gradients, and its backward touches P rows
+    The points are laid out as a dense (V, T, C) tensor by their rank in their voxel
+    (``voxels.slot``) and reduced over T: a slot -> point table (scatter of P integers), then one
+    row gather, which onnxruntime runs much faster than a per-element ScatterElements max or a
+    ScatterND of whole rows. Hard voxels hold at most T = max_points points; for dynamic voxels
+    T = DENSE_SLOTS, and the few points beyond (dense voxels near the sensor) are added by
+    ScatterElements max. Under autograd the scatter form runs: same values and gradients, and its backward touches P rows
     instead of the V * T slots of the dense layout (a PointPillars training step 1.27x).
     """
     if training_form():
         return scatter_max_nonneg(values, voxels.point2voxel, voxels.num_voxels)
-    p2v, v = voxels.point2voxel, voxels.num_voxels
-    if voxels.slot is not None:
+    p2v, v, slot = voxels.point2voxel, voxels.num_voxels, voxels.slot
+    if voxels.max_points is not None:
         t = voxels.max_points
-        return slot_max(values, p2v * t + voxels.slot, torch.arange(values.shape[0], dtype=torch.long), v, t)
-    slot = dynamic_slots(voxels) if slot is None else slot
+        return slot_max(values, p2v * t + slot, torch.arange(values.shape[0], dtype=torch.long), v, t)
     dense = torch.nonzero(slot < DENSE_SLOTS)[:, 0]  # (Q,) points in the dense layout
     rest = torch.nonzero(slot >= DENSE_SLOTS)[:, 0]  # (R,) the others (dense voxels near the sensor)
     out = slot_max(values, take_rows(p2v * DENSE_SLOTS + slot, dense), dense, v, DENSE_SLOTS)  # (V, C)
     idx = take_rows(p2v, rest)[:, None].expand(-1, values.shape[1])  # (R, C)
     return out.scatter_reduce(0, idx, take_rows(values, rest), "amax", include_self=True)
-
-
-def dynamic_slots(voxels: Voxels) -> Tensor:
-    """(P,) rank of each point of a dynamic voxelization in its voxel (input order)."""
-    return slot_in_voxel(voxels.point2voxel, voxels.num_voxels, math.prod(voxels.shape))
 
 
 def slot_max(values: Tensor, cells: Tensor, points: Tensor, num_voxels: int, t: int) -> Tensor:

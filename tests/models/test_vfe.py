@@ -59,14 +59,14 @@ def test_voxel_max_uses_slots_of_hard_voxels():
 
 def test_voxel_max_of_dynamic_voxels_matches_loop():
     """Dynamic voxels: the first DENSE_SLOTS points of a voxel densely, the rest scattered."""
-    from models.vfe import DENSE_SLOTS, dynamic_slots, voxel_max_nonneg
+    from models.vfe import DENSE_SLOTS, voxel_max_nonneg
     from models.voxelize import dynamic_voxelize
 
     rng = np.random.default_rng(3)
     for n in (0, 40, 3000):  # 3000 points in 256 voxels: many beyond the dense slots
         pts = torch.from_numpy((rng.random((n, 4)) * [8, 8, 4, 1] + [0, -4, -3, 0]).astype(np.float32))
         vox = dynamic_voxelize(pts, GRID)
-        slot = dynamic_slots(vox)
+        slot = vox.slot
         vals = torch.from_numpy(rng.random((vox.points.shape[0], 5)).astype(np.float32))
         with torch.no_grad():
             got = voxel_max_nonneg(vals, vox).numpy()
