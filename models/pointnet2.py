@@ -185,8 +185,8 @@ def three_nn_interpolate(unknown: Tensor, known: Tensor, known_feats: Tensor) ->
     known_p = torch.cat([known, far], 0).T  # (3, M+3) axis-major
     feats_p = torch.cat([known_feats, known_feats.new_zeros(3, known_feats.shape[1])], 0)
     u = unknown.T  # (3, N)
-    d2 = (u[0][:, None] - known_p[0]) ** 2 + (u[1][:, None] - known_p[1]) ** 2  # (N, M+3) m^2
-    d2 = d2 + (u[2][:, None] - known_p[2]) ** 2  # per axis: (N, 1) - (M+3,) runs row by row
+    dx, dy, dz = (u[i][:, None] - known_p[i] for i in range(3))  # (N, M+3) each: rows of (N, 1) - (M+3,)
+    d2 = dx * dx + dy * dy + dz * dz  # (N, M+3) m^2 (Mul, not Pow: the same bits, faster in onnxruntime)
     d2_nn, idx = torch.topk(d2, 3, dim=1, largest=False, sorted=True)  # (N, 3)
     weight = 1.0 / torch.sqrt(d2_nn).clamp(min=1e-8)  # (N, 3)
     weight = weight / weight.sum(1, keepdim=True)
