@@ -14,7 +14,8 @@ resumes from / reuses ``<out>/runs/<model>/checkpoint.pt``.
 
 ``--speed`` trains nothing: per model (the trained ``<out>/runs/<model>/checkpoint.pt`` if there
 is one, else random weights, which the output says) it prints onnxruntime, torch eager and
-OpenVINO p50 on the same SOTIF frames (one thread each), the GEMM GFLOP of a frame, the GEMM and
+OpenVINO p50 on the same SOTIF frames (one thread each, CPU time of the process, so that other
+work on the machine does not count), the GEMM GFLOP of a frame, the GEMM and
 non-GEMM time from onnxruntime's profiler, and ORT time over the time the GEMMs would take at the
 GEMM peak measured in the same run (a 2048^2 MatMul):
 

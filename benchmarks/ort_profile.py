@@ -68,18 +68,27 @@ def _frame_split(nodes: list[dict]) -> tuple[float, float, float, dict[str, floa
 
 def profile_frames(path, feeds: list[dict], threads: int = 1) -> dict:
     """Per-frame medians over ``feeds`` (one profiled run each, after one warm-up run):
-    ``gemm_ms``, ``other_ms`` (node times), ``gemm_gflop`` and the slowest non-GEMM ops."""
+    ``gemm_ms``, ``other_ms`` (node times), ``gemm_gflop`` and the slowest non-GEMM ops.
+
+    The profiler's node times are wall times; on a machine shared with other work they are scaled
+    by the run's CPU time over its wall time (the share of the run the thread spent on a core), so
+    that they add up like the CPU-time latencies of ``benchmarks/model_speed.py``."""
+    cpu = []
     with tempfile.TemporaryDirectory() as tmp:
         sess = session(path, threads, Path(tmp))
         sess.run(None, feeds[0])
         for feed in feeds:
+            t0 = time.process_time()
             sess.run(None, feed)
+            cpu.append(1000 * (time.process_time() - t0))
         events = json.loads(Path(sess.end_profiling()).read_text())
     nodes = [e for e in events if e.get("cat") == "Node" and e.get("name", "").endswith("_kernel_time")]
     frames = []
-    for run in [e for e in events if e.get("name") == "model_run"][1:]:  # the first is the warm-up
+    for run, cpu_ms in zip([e for e in events if e.get("name") == "model_run"][1:], cpu):  # [0]: the warm-up
         t0, t1 = run["ts"], run["ts"] + run["dur"]
-        frames.append(_frame_split([e for e in nodes if t0 <= e["ts"] <= t1]))
+        busy = min(1.0, cpu_ms * threads / (run["dur"] / 1000.0))  # share of the wall time on a core
+        gemm, other, gflop, ops = _frame_split([e for e in nodes if t0 <= e["ts"] <= t1])
+        frames.append((gemm * busy, other * busy, gflop, {op: ms * busy for op, ms in ops.items()}))
     top: dict[str, float] = {}
     for *_, ops in frames:
         for op, ms in ops.items():
@@ -102,7 +111,7 @@ def gemm_peak(n: int = 2048, repeats: int = 5, threads: int = 1) -> float:
     sess.run(None, {"a": x})
     best = math.inf
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0 = time.process_time()  # CPU time: the peak of the core, not of a share of it
         sess.run(None, {"a": x})
-        best = min(best, time.perf_counter() - t0)
+        best = min(best, time.process_time() - t0)
     return 2.0 * n ** 3 / best / 1e9

@@ -28,14 +28,14 @@ from torch import Tensor, nn
 
 from harness.types import Sample
 from models.anchor_head import HeadConfig
-from models.base import Detector, mean_over_frames, training_form
+from models.base import Detector, mean_over_frames
 from models.image_branch import ImageBranch, ImageBranchConfig, PointFusion, PointFusionConfig
 from models.second import KITTI as SECOND_KITTI
 from models.second import TINY as SECOND_TINY
 from models.second import SECONDConfig
 from models.single_stage import bev_stages, frame_targets
 from models.sparse import SparseTensor, height_compress
-from models.vfe import RowBatchNorm, decorate_points, dynamic_slots, voxel_max_nonneg
+from models.vfe import RowBatchNorm, decorate_points, voxel_max_nonneg
 from models.voxel_backbone import VoxelBackbone, VoxelBackboneConfig
 from models.voxelize import Grid, Voxels, dynamic_voxelize
 
@@ -113,13 +113,12 @@ class FusionVFE(nn.Module):
     def forward(self, voxels: Voxels, img_feats: list[Tensor], lidar2img: Tensor, image_hw: tuple) -> Tensor:
         """-> (V, fusion_out) voxel features."""
         x = self.decorate(voxels)  # (P, 10)
-        slot = None if training_form() else dynamic_slots(voxels)  # (P,) shared by both maxima
         for i, layer in enumerate(self.layers):
             x = torch.relu(layer(x))  # (P, C)
             if i < len(self.layers) - 1:
-                x = torch.cat([x, voxel_max_nonneg(x, voxels, slot)[voxels.point2voxel]], dim=1)  # (P, 2C)
+                x = torch.cat([x, voxel_max_nonneg(x, voxels)[voxels.point2voxel]], dim=1)  # (P, 2C)
         fused = self.fusion(img_feats, voxels.points[:, :3], x, lidar2img, image_hw)  # (P, C_f) >= 0
-        return voxel_max_nonneg(fused, voxels, slot)  # (V, C_f)
+        return voxel_max_nonneg(fused, voxels)  # (V, C_f)
 
 
 class MVXNet(Detector):

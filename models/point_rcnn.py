@@ -287,7 +287,9 @@ class PointRCNN(Detector):
         # sort key: the kept far points, then the rest in range in pseudo-random order, then the others
         rank = hash_rank(pts.shape[0], salt, points.device).to(torch.float32)  # (N + 1,) exact below 2**24
         tier = torch.where(inside, 1.0, 2.0) - (far & (n_far < total)).to(torch.float32)  # (N + 1,) 0, 1 or 2
-        order = torch.argsort(rank + tier * float(_HASH_MOD))  # (N + 1,) distinct keys: no tie to break
+        key = rank + tier * float(_HASH_MOD)  # (N + 1,) distinct keys: no tie to break
+        # the first num_points of the order are all that is read: a partial sort (TopK)
+        order = torch.topk(key, torch.sym_min(total, key.shape[0]), largest=False, sorted=True).indices
         j = torch.arange(total, device=points.device)  # (num_points,)
         pick = order[torch.remainder(j, n_in.clamp(min=1))]  # (num_points,) cyclic when n_in < num_points
         idx = torch.where(n_in > 0, pick, torch.full_like(j, pts.shape[0] - 1))

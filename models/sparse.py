@@ -2,7 +2,7 @@
 
 A :class:`SparseTensor` is one frame's active voxels: features ``(V, C)``, integer coordinates
 ``(V, 3)`` as (z, y, x) and the grid shape ``(D, H, W)``. Neighbour tables are built from the
-active voxels only: a dense int64 "index grid" (value ``V`` = empty), padded by a margin of
+active voxels only: a dense int32 "index grid" (value ``V`` = empty), padded by a margin of
 empty cells around the ``(D, H, W)`` grid, is filled by scatter once per resolution, and the
 neighbours of every kernel offset are one gather at ``linear index of the voxel + linear offset
 of the kernel tap`` (the margin catches the taps that leave the grid, so no bounds tests). The
@@ -80,7 +80,7 @@ class SparseTensor:
         return replace(self, features=features)
 
     def index_grid(self) -> Tensor:
-        """(D*H*W,) int64: row of the voxel at each linear position, V where empty."""
+        """(D*H*W,) int32: row of the voxel at each linear position, V where empty."""
         if "grid" not in self.cache:
             self.cache["grid"] = build_index_grid(self.coords, self.shape)
         return self.cache["grid"]
@@ -107,10 +107,13 @@ def linear_index(coords: Tensor, shape) -> Tensor:
 
 
 def build_index_grid(coords: Tensor, shape) -> Tensor:
-    """(D*H*W,) int64 grid with the row index of each active voxel, V elsewhere."""
+    """(D*H*W,) int32 grid with the row index of each active voxel, V elsewhere.
+
+    int32, not int64: filling and scattering into the grid writes every cell (2.8M for compact
+    SECOND's padded stem grid), and the tables read from it are Gather indices either way."""
     v = coords.shape[0]
-    grid = torch.full((shape[0] * shape[1] * shape[2],), v, dtype=torch.long)
-    return grid.index_put_((linear_index(coords, shape),), torch.arange(v, dtype=torch.long))
+    grid = torch.full((shape[0] * shape[1] * shape[2],), v, dtype=torch.int32)
+    return grid.index_put_((linear_index(coords, shape),), torch.arange(v, dtype=torch.int32))
 
 
 def lookup(grid: Tensor, shape, query: Tensor, valid: Tensor | None, missing: int) -> Tensor:
@@ -121,7 +124,7 @@ def lookup(grid: Tensor, shape, query: Tensor, valid: Tensor | None, missing: in
     if valid is not None:
         inside = inside & valid
     lin = _linear_axis_major(torch.minimum(query.clamp(min=0), hi - 1), shape)  # (K, V)
-    return torch.where(inside, take_rows(grid, lin), torch.full_like(lin, missing)).T
+    return torch.where(inside, take_rows(grid, lin), torch.full_like(lin, missing, dtype=grid.dtype)).T
 
 
 def _margin(low, high) -> tuple[int, int, int]:

@@ -58,19 +58,20 @@ def test_voxel_max_uses_slots_of_hard_voxels():
 
 
 def test_voxel_max_of_dynamic_voxels_matches_loop():
-    """Dynamic voxels: the first DENSE_SLOTS points of a voxel densely, the rest scattered."""
-    from models.vfe import DENSE_SLOTS, dynamic_slots, voxel_max_nonneg
+    """Dynamic voxels: chunks of DENSE_SLOTS points densely, the points past CHUNKS chunks scattered."""
+    from models.vfe import CHUNKS, DENSE_SLOTS, voxel_max_nonneg
     from models.voxelize import dynamic_voxelize
 
     rng = np.random.default_rng(3)
-    for n in (0, 40, 3000):  # 3000 points in 256 voxels: many beyond the dense slots
-        pts = torch.from_numpy((rng.random((n, 4)) * [8, 8, 4, 1] + [0, -4, -3, 0]).astype(np.float32))
+    # 3000 points in 256 voxels: several chunks per voxel; in a 1 m cube: past the dense chunks
+    for n, extent in ((0, 8), (40, 8), (3000, 8), (3000, 1)):
+        pts = torch.from_numpy((rng.random((n, 4)) * [extent, extent, extent / 2, 1] + [0, -4, -3, 0]).astype(np.float32))
         vox = dynamic_voxelize(pts, GRID)
-        slot = dynamic_slots(vox)
+        slot = vox.slot
         vals = torch.from_numpy(rng.random((vox.points.shape[0], 5)).astype(np.float32))
         with torch.no_grad():
             got = voxel_max_nonneg(vals, vox).numpy()
-        assert n < 3000 or (slot >= DENSE_SLOTS).any()
+        assert n < 3000 or (slot >= (DENSE_SLOTS if extent == 8 else DENSE_SLOTS * CHUNKS)).any()
         for i in range(vox.num_voxels):
             members = (vox.point2voxel == i).numpy()
             np.testing.assert_array_equal(got[i], vals[members].numpy().max(0))

@@ -2,7 +2,8 @@ import numpy as np
 import torch
 
 import models.voxelize as voxelize
-from models.voxelize import Grid, dynamic_voxelize, filter_range, hard_voxelize, range_mask, unique_cells
+from models.voxelize import (Grid, dynamic_voxelize, filter_range, group_cells, hard_voxelize, range_mask,
+                             unique_cells)
 
 GRID = Grid((0.0, -4.0, -2.0, 8.0, 4.0, 1.0), (0.5, 0.5, 0.75))
 
@@ -48,10 +49,29 @@ def test_unique_cells_matches_torch_unique(monkeypatch):
         monkeypatch.setattr(voxelize, "TABLE_CELLS", table_cells)
         for n, cells in ((0, 10), (1, 10), (500, 64), (3000, 100_000)):
             linear = torch.from_numpy(rng.integers(0, cells, n))
-            ref_uniq, ref_inverse = np.unique(linear.numpy(), return_inverse=True)
-            uniq, inverse = unique_cells(linear, cells, return_inverse=True)
-            assert np.array_equal(uniq.numpy(), ref_uniq) and np.array_equal(inverse.numpy(), ref_inverse)
-            assert np.array_equal(unique_cells(linear, cells).numpy(), ref_uniq)
+            assert np.array_equal(unique_cells(linear, cells).numpy(), np.unique(linear.numpy()))
+
+
+def _rank_in_group(group):
+    """Rank of every entry among the equal entries before it (a plain loop)."""
+    seen, rank = {}, []
+    for g in group.tolist():
+        rank.append(seen.get(g, 0))
+        seen[g] = rank[-1] + 1
+    return np.array(rank, dtype=np.int64)
+
+
+def test_group_cells_matches_numpy_unique(monkeypatch):
+    rng = np.random.default_rng(3)
+    for graph in (False, True):  # eager stable sort, then the graph's radix passes
+        monkeypatch.setattr(voxelize, "tracing", lambda: graph)
+        for n, cells in ((0, 10), (1, 10), (500, 64), (3000, 100_000), (4000, 90_000_000)):
+            linear = torch.from_numpy(rng.integers(0, cells, n))
+            ref_cells, ref_inverse = np.unique(linear.numpy(), return_inverse=True)
+            got = group_cells(linear, cells)
+            assert np.array_equal(got.cells.numpy(), ref_cells)
+            assert np.array_equal(got.inverse.numpy(), ref_inverse.reshape(-1))
+            assert np.array_equal(got.rank.numpy(), _rank_in_group(linear.numpy()))
 
 
 def test_grid_centres_match_numpy():
