@@ -298,3 +298,34 @@ def test_warm_start_trains_the_sibling_first_and_starts_from_it(tmp_path, monkey
         hr._model_job(cfg, tmp_path, "pv_rcnn.seed1", "h", "h", "onnxruntime", False, None, False, 1)
     assert seen["init_from"] == sibling and seen["seed"] == cfg.seed + 1
     assert hr._sibling(cfg, "point_rcnn") is None and hr._sibling(cfg, "mvx_net.seed2") == "dv_second.seed2"
+
+
+def test_a_changed_graph_code_exports_again_and_trains_nothing(tmp_path, monkeypatch):
+    import hashlib
+
+    import harness.run as hr
+    import models
+    from harness.stages import Stages
+    root = Path(models.__file__).parent
+    reference = hashlib.sha256(b"".join(p.name.encode() + b"\0" + p.read_bytes() for p in sorted(root.glob("*.py"))))
+    assert hr.graph_code() == reference.hexdigest()[:16]
+    calls = []
+
+    def train(name, data, out, **k):
+        calls.append("train")
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "checkpoint.pt").write_bytes(b"weights")
+        return out / "checkpoint.pt"
+
+    def export(ckpt, out, expected_model=None):
+        calls.append("export")
+        out.write_bytes(b"graph")
+        return out
+
+    monkeypatch.setattr("harness.train.train", train)
+    monkeypatch.setattr("models.export.export_checkpoint", export)
+    stages = Stages(tmp_path, False)
+    for code in ("a", "a", "b"):
+        monkeypatch.setattr(hr, "graph_code", lambda code=code: code)
+        hr._train_export(stages, TINY, tmp_path, "pointpillars", "data")
+    assert calls == ["train", "export", "export"]
