@@ -101,11 +101,12 @@ PROFILES = {
                       warm_start=False),
 }
 
-# Minutes of each model's jobs in the sample run (docs/performance.md, its stage table's totals): the
+# Minutes of each model's jobs in the sample run (docs/performance.md, its stage table's totals; SECOND
+# and DV-SECOND, which ran beside a third process for 5 of their 12 epochs, as on an idle machine): the
 # job pool starts the longest first, so that the jobs end together, and the ETA a run prints scales
 # them by the share of each job still to do.
-_SAMPLE_MINUTES = {"mvx_net": 22, "point_rcnn": 23, "pointpillars": 15, "pv_rcnn": 26, "second": 24, "dv_second": 24,
-                   "parta2": 24}
+_SAMPLE_MINUTES = {"mvx_net": 21, "point_rcnn": 26, "pointpillars": 15, "pv_rcnn": 26, "second": 28, "dv_second": 28,
+                   "parta2": 25}
 
 
 def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
