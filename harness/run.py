@@ -72,11 +72,14 @@ def _sibling(cfg: RunConfig, tag: str) -> str | None:
 
 def with_siblings(cfg: RunConfig, run_dir: Path, names: list[str], progress: bool = True) -> list[str]:
     """``names`` and, with ``warm_start``, the siblings their trainings start from that neither ``names``
-    nor ``run_dir`` holds (``run --models pv_rcnn`` also trains SECOND, as the default run does)."""
+    nor ``run_dir`` (in every draw) holds (``run --models pv_rcnn`` also trains SECOND, as the default run
+    does)."""
     extra = []
     for name in names:
         sib = _sibling(cfg, name)
-        if sib and sib not in names + extra and not (run_dir / "models" / sib / "checkpoint.pt").is_file():
+        held = sib and all((run_dir / "models" / draw_tag(sib, d) / "checkpoint.pt").is_file()
+                           for d in range(cfg.seeds))
+        if sib and sib not in names + extra and not held:
             extra.append(sib)
             if progress:
                 print(f"{name} starts from {sib}'s first stage: {sib} is trained too (--no-warm-start: "

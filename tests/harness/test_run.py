@@ -267,6 +267,8 @@ def test_a_warm_started_model_brings_its_sibling_unless_the_run_holds_it(tmp_pat
     (tmp_path / "models" / "second").mkdir(parents=True)
     (tmp_path / "models" / "second" / "checkpoint.pt").write_bytes(b"weights")  # trained by an earlier run
     assert hr.with_siblings(cfg, tmp_path, ["pv_rcnn"], progress=False) == ["pv_rcnn"]
+    # with two draws, the second draw's sibling is missing: SECOND trains too
+    assert hr.with_siblings(replace(cfg, seeds=2), tmp_path, ["pv_rcnn"], progress=False) == ["pv_rcnn", "second"]
 
 
 def test_warm_start_trains_the_sibling_first_and_starts_from_it(tmp_path, monkeypatch):
