@@ -86,7 +86,7 @@ def profile_frames(path, feeds: list[dict], threads: int = 1) -> dict:
     frames = []
     for run, cpu_ms in zip([e for e in events if e.get("name") == "model_run"][1:], cpu):  # [0]: the warm-up
         t0, t1 = run["ts"], run["ts"] + run["dur"]
-        busy = min(1.0, cpu_ms * threads / (run["dur"] / 1000.0))  # share of the wall time on a core
+        busy = min(1.0, cpu_ms / threads / (run["dur"] / 1000.0))  # share of the wall time its threads were on a core
         gemm, other, gflop, ops = _frame_split([e for e in nodes if t0 <= e["ts"] <= t1])
         frames.append((gemm * busy, other * busy, gflop, {op: ms * busy for op, ms in ops.items()}))
     top: dict[str, float] = {}

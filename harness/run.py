@@ -70,6 +70,11 @@ def _sibling(cfg: RunConfig, tag: str) -> str | None:
     return WARM_FROM[name] + tag[len(name):]  # the same draw's suffix
 
 
+def checkpoint_of(run_dir: Path, tag: str) -> Path:
+    """Where a run keeps the checkpoint of a model's training draw (``draw_tag``)."""
+    return run_dir / "models" / tag / "checkpoint.pt"
+
+
 def with_siblings(cfg: RunConfig, run_dir: Path, names: list[str], progress: bool = True) -> list[str]:
     """``names`` and, with ``warm_start``, the siblings their trainings start from that neither ``names``
     nor ``run_dir`` (in every draw) holds (``run --models pv_rcnn`` also trains SECOND, as the default run
@@ -77,8 +82,7 @@ def with_siblings(cfg: RunConfig, run_dir: Path, names: list[str], progress: boo
     extra = []
     for name in names:
         sib = _sibling(cfg, name)
-        held = sib and all((run_dir / "models" / draw_tag(sib, d) / "checkpoint.pt").is_file()
-                           for d in range(cfg.seeds))
+        held = sib and all(checkpoint_of(run_dir, draw_tag(sib, d)).is_file() for d in range(cfg.seeds))
         if sib and sib not in names + extra and not held:
             extra.append(sib)
             if progress:
@@ -130,17 +134,16 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train
     from models.export import export_checkpoint
     from models.zoo import config
     name = _model_of(tag)
-    ckpt_dir = run_dir / "models" / tag
-    ckpt = ckpt_dir / "checkpoint.pt"
+    ckpt = checkpoint_of(run_dir, tag)
     seed = cfg.seed + draw
     sibling = _sibling(cfg, tag)
     schedule = asdict(train_config(name, cfg.model_profile, warm=sibling is not None))
-    init = run_dir / "models" / sibling / "checkpoint.pt" if sibling else None
+    init = checkpoint_of(run_dir, sibling) if sibling else None
     warm = {"init_from": {"model": sibling, "checkpoint": file_digest(init)}} if init else {}
     tinfo = stages.run(f"train_{tag}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
                                          "schedule": schedule, "model_config": asdict(config(name, cfg.model_profile)),
                                          "data": train_hash, "seed": seed, **warm},
-                       lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt_dir,
+                       lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt.parent,
                                                         profile=cfg.model_profile, epochs=cfg.epochs,
                                                         device=cfg.device, seed=seed, init_from=init,
                                                         progress=stages.bars, on_epoch=stages.epoch_line(tag)))},
@@ -209,7 +212,7 @@ def _runtime_probe(stages: Stages, cfg: RunConfig, run_dir: Path, name: str) -> 
     has_ov = importlib.util.find_spec("openvino") is not None
     key = {"onnx": file_digest(onnx_path), "frames": cfg.runtime_frames, "openvino": has_ov}
     return stages.run(f"runtime_{name}", key,
-                      lambda: {**compare_torch_onnx(run_dir / "models" / name / "checkpoint.pt", onnx_path, data,
+                      lambda: {**compare_torch_onnx(checkpoint_of(run_dir, name), onnx_path, data,
                                                     n_frames=cfg.runtime_frames),
                                "openvino": compare_openvino(onnx_path, data, n_frames=cfg.runtime_frames)})
 
@@ -219,7 +222,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
     from harness.sotif import sotif_view
     onnx_path = run_dir / "models" / f"{name}.onnx"
     info = check_contract(onnx_path)
-    ck = _checkpoint_meta(run_dir / "models" / name / "checkpoint.pt")
+    ck = _checkpoint_meta(checkpoint_of(run_dir, name))
     data = run_dir / "data" / "sotif"
     return {"architecture": info.architecture, "two_stage": info.two_stage, "uses_camera": info.uses_camera,
             "onnx": f"models/{name}.onnx", "size_mb": onnx_path.stat().st_size / 2**20, "params": ck["params"],
@@ -296,7 +299,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
         sib = _sibling(cfg, n)
         if sib in draws:
             waits[n] = sib
-        elif sib and not (run_dir / "models" / sib / "checkpoint.pt").is_file():
+        elif sib and not checkpoint_of(run_dir, sib).is_file():
             raise ValueError(f"--warm-start: {n} starts from {sib}, which is neither among the models of this run "
                              f"nor trained in {run_dir} (add {_model_of(sib)} to --models)")
     jobs = max(1, min(cfg.jobs, len(names)))
@@ -383,7 +386,7 @@ def _work_left(cfg: RunConfig, run_dir: Path, name: str) -> float:
     from harness.train import train_config
     from models.zoo import CheckpointError, read_checkpoint
     epochs = cfg.epochs or train_config(_model_of(name), cfg.model_profile).epochs
-    ckpt = run_dir / "models" / name / "checkpoint.pt"
+    ckpt = checkpoint_of(run_dir, name)
     try:
         done = read_checkpoint(ckpt).get("epoch", 0) if ckpt.is_file() else 0
     except CheckpointError:
@@ -488,7 +491,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
 
 def _draw_summary(run_dir: Path, tag: str, seed: int) -> dict:
     """One training draw of a model: its seed, files, val AP and the headline AP of its predictions."""
-    ck = _checkpoint_meta(run_dir / "models" / tag / "checkpoint.pt")
+    ck = _checkpoint_meta(checkpoint_of(run_dir, tag))
     res = json.loads((run_dir / "results" / f"{tag}.json").read_text())
     return {"tag": tag, "seed": seed, "onnx": f"models/{tag}.onnx", "results": f"results/{tag}.json",
             "val_ap": ck["val_ap"], "headline": res["headline"], "distance": res["distance"]}
