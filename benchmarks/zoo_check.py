@@ -12,6 +12,11 @@ the zoo's ranking checks, each printed as ``pass``/``FAIL`` with its numbers:
 - MVX-Net at or above DV-SECOND (val AP) and within 10 points of it in every distance bin;
 - PointRCNN's 0-30 m AP at least its 30-50 m AP.
 
+A run with several training draws (``run --seeds K``) adds, per model, the mean and the range
+(min-max) over its draws of the val AP and of the headline, and for every pair of models whether
+their ranges are apart: a ranking between two models holds beyond the draws only when the worse
+draw of one is above the better draw of the other. The checks above read draw 0.
+
     python benchmarks/zoo_check.py reports/default [--json out.json]
 """
 from __future__ import annotations
@@ -46,6 +51,26 @@ def model_rows(run: Path) -> dict[str, dict]:
             row["ap3d_proposals"] = roi["headline"]["3d"]["0.7"]
         rows[name] = row
     return rows
+
+
+def draw_spread(run: Path) -> dict[str, dict]:
+    """Per model of a run with training draws: {"val_ap": [...], "ap3d": [...]} over its draws (draw
+    order; None where a figure is missing). Empty for a run of one draw."""
+    summary = json.loads((run / "results.json").read_text())
+    out = {}
+    for name, draws in (summary.get("draws") or {}).items():
+        vals = [d.get("val_ap") for d in draws]
+        out[name] = {"val_ap": [v.get("3d_moderate") if isinstance(v, dict) else v for v in vals],
+                     "ap3d": [(d.get("headline") or {}).get("3d", {}).get("0.7") for d in draws]}
+    return out
+
+
+def separated(spread: dict[str, dict], key: str) -> list[tuple[str, str, bool]]:
+    """(better by mean, worse by mean, ranges apart) for every pair of models with ``key`` in every
+    draw: apart when the better model's worst draw is above the other's best draw."""
+    full = {n: v[key] for n, v in spread.items() if v[key] and None not in v[key]}
+    names = sorted(full, key=lambda n: -sum(full[n]) / len(full[n]))
+    return [(a, b, min(full[a]) > max(full[b])) for i, a in enumerate(names) for b in names[i + 1:]]
 
 
 def checks(rows: dict[str, dict]) -> list[tuple[str, bool | None, str]]:
@@ -104,9 +129,27 @@ def main(argv=None) -> int:
     results = checks(rows)
     for name, ok, numbers in results:
         print(f"{'n/a ' if ok is None else 'pass' if ok else 'FAIL'}  {name}: {numbers}")
+    spread = draw_spread(a.run)
+    pairs = {}
+    if spread:
+        print("\n| model | draws | val AP mean | val AP range | AP3D @0.7 mean | AP3D @0.7 range |")
+        print("|---|---:|---:|---|---:|---|")
+        for n, v in spread.items():
+            cells = []
+            for key in ("val_ap", "ap3d"):
+                got = [x for x in v[key] if x is not None]
+                cells += [f"{sum(got) / len(got):.1f}", f"{min(got):.1f}-{max(got):.1f}"] if got else ["", ""]
+            print(f"| {n} | {len(v['val_ap'])} | " + " | ".join(cells) + " |")
+        for key, label in (("val_ap", "val AP"), ("ap3d", "AP3D @0.7")):
+            pairs[key] = separated(spread, key)
+            apart = [f"{a} > {b}" for a, b, ok in pairs[key] if ok]
+            within = [f"{a} ~ {b}" for a, b, ok in pairs[key] if not ok]
+            print(f"\n{label}, rankings beyond the draws: {', '.join(apart) or 'none'}")
+            print(f"{label}, within the draws (no ranking): {', '.join(within) or 'none'}")
     if a.json:
         a.json.write_text(json.dumps({"rows": rows, "checks": [{"check": c, "pass": ok, "numbers": s}
-                                                               for c, ok, s in results]}, indent=1))
+                                                               for c, ok, s in results],
+                                      "draws": spread, "separated": pairs}, indent=1))
     return 0
 
 

@@ -47,3 +47,23 @@ def test_checks_by_hand():
 def test_not_a_run_folder(tmp_path, capsys):
     assert main([str(tmp_path)]) == 2
     assert "no results.json" in capsys.readouterr().err
+
+
+def test_draw_spread_and_separated_rankings(tmp_path, capsys):
+    from benchmarks.zoo_check import draw_spread, separated
+    run = make_run(tmp_path / "run", models=(("second", 0.1, False), ("parta2", 0.3, True)))
+    doc = json.loads((run / "results.json").read_text())
+    draw = lambda tag, val, ap: {"tag": tag, "seed": 0, "val_ap": {"3d_moderate": val}, "headline": {"3d": {"0.7": ap}}}
+    doc["draws"] = {"second": [draw("second", 80.0, 60.0), draw("second.seed1", 84.0, 50.0)],
+                    "parta2": [draw("parta2", 86.0, 58.0), draw("parta2.seed1", 85.0, 52.0)]}
+    (run / "results.json").write_text(json.dumps(doc))
+    spread = draw_spread(run)
+    assert spread["second"] == {"val_ap": [80.0, 84.0], "ap3d": [60.0, 50.0]}
+    assert separated(spread, "val_ap") == [("parta2", "second", True)]  # 85 > 84
+    assert separated(spread, "ap3d") == [("second", "parta2", False)]  # means 55 vs 55: 50 < 58
+    assert main([str(run), "--json", str(tmp_path / "z.json")]) == 0
+    out = capsys.readouterr().out
+    assert "| second | 2 | 82.0 | 80.0-84.0 | 55.0 | 50.0-60.0 |" in out
+    assert "val AP, rankings beyond the draws: parta2 > second" in out
+    assert "AP3D @0.7, within the draws (no ranking): second ~ parta2" in out
+    assert json.loads((tmp_path / "z.json").read_text())["separated"]["val_ap"] == [["parta2", "second", True]]
