@@ -9,6 +9,7 @@ from harness.types import Sample
 from models.export import export_onnx, integer_extremes, run_onnx
 from models.point_rcnn import (
     CONFIGS,
+    PointNet2Backbone,
     PointRCNN,
     bin_channels,
     bin_loss,
@@ -260,3 +261,24 @@ def test_points_of_interest_exports_exactly_for_large_clouds(tmp_path):
         ref = module(torch.from_numpy(cloud)).numpy()
         for run in runners:
             np.testing.assert_array_equal(run(cloud), ref)
+
+
+@pytest.mark.parametrize("skip_xyz", [False, True])
+def test_point_features_know_their_height_only_with_skip_xyz(skip_xyz):
+    """Set abstraction and feature propagation see offsets between points only, so lifting the
+    whole cloud by 0.5 m leaves every point's feature unchanged: the network cannot tell a point's
+    height (and a proposal's z is that height plus a predicted offset). With ``skip_xyz`` the last
+    propagation reads the coordinates, and the features change."""
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(CFG, skip_xyz=skip_xyz)
+    net = PointNet2Backbone(cfg).eval()
+    rng = np.random.default_rng(3)
+    xyz = torch.from_numpy(rng.uniform([2, -6, -2], [14, 6, 0], (256, 3)).astype(np.float32))
+    feats = torch.from_numpy(rng.uniform(0, 1, (256, 1)).astype(np.float32))
+    with torch.no_grad():
+        low, high = net(xyz, feats), net(xyz + torch.tensor([0.0, 0.0, 0.5]), feats)
+    diff = float((low - high).abs().max())
+    if skip_xyz:
+        assert diff > 1e-3
+    else:
+        assert diff < 1e-4
