@@ -23,10 +23,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 from pathlib import Path
 
 from harness.tables import DISTANCE_BINS as BINS  # "0-30", "30-50", "50-80" (m)
+from harness.tables import mean_range  # the draws table's mean and range
 
 TWO_STAGE = ("parta2", "pv_rcnn", "point_rcnn")
 
@@ -68,9 +70,9 @@ def draw_spread(run: Path) -> dict[str, dict]:
 def separated(spread: dict[str, dict], key: str) -> list[tuple[str, str, bool]]:
     """(better by mean, worse by mean, ranges apart) for every pair of models with ``key`` in every
     draw: apart when the better model's worst draw is above the other's best draw."""
-    full = {n: v[key] for n, v in spread.items() if v[key] and None not in v[key]}
-    names = sorted(full, key=lambda n: -sum(full[n]) / len(full[n]))
-    return [(a, b, min(full[a]) > max(full[b])) for i, a in enumerate(names) for b in names[i + 1:]]
+    full = {n: mean_range(v[key]) for n, v in spread.items() if v[key] and None not in v[key]}
+    names = sorted(full, key=lambda n: -full[n]["mean"])
+    return [(a, b, full[a]["min"] > full[b]["max"]) for i, a in enumerate(names) for b in names[i + 1:]]
 
 
 def checks(rows: dict[str, dict]) -> list[tuple[str, bool | None, str]]:
@@ -137,8 +139,8 @@ def main(argv=None) -> int:
         for n, v in spread.items():
             cells = []
             for key in ("val_ap", "ap3d"):
-                got = [x for x in v[key] if x is not None]
-                cells += [f"{sum(got) / len(got):.1f}", f"{min(got):.1f}-{max(got):.1f}"] if got else ["", ""]
+                m = mean_range(v[key])
+                cells += ["", ""] if math.isnan(m["mean"]) else [f"{m['mean']:.1f}", f"{m['min']:.1f}-{m['max']:.1f}"]
             print(f"| {n} | {len(v['val_ap'])} | " + " | ".join(cells) + " |")
         for key, label in (("val_ap", "val AP"), ("ap3d", "AP3D @0.7")):
             pairs[key] = separated(spread, key)

@@ -402,7 +402,8 @@ def to_markdown(df: pd.DataFrame, digits: int = 2) -> str:
     return "\n".join([head, sep, *body]) + "\n"
 
 
-def _spread(values: list) -> dict:
+def mean_range(values: list) -> dict:
+    """{mean, min, max} of the values that are not None (NaN for none)."""
     v = np.array([np.nan if x is None else x for x in values], dtype=float)
     if not len(v) or np.isnan(v).all():
         return {"mean": np.nan, "min": np.nan, "max": np.nan}
@@ -422,7 +423,7 @@ def draws_table(run: Run) -> pd.DataFrame:
         for key, values in (("val AP3D mod", [_get(d, "val_ap", "3d_moderate", default=None) for d in draws]),
                             ("AP3D", [_get(d, "headline", "3d", "0.7", default=None) for d in draws]),
                             ("AP BEV", [_get(d, "headline", "bev", "0.7", default=None) for d in draws])):
-            row.update({f"{key} {k}": v for k, v in _spread(values).items()})
+            row.update({f"{key} {k}": v for k, v in mean_range(values).items()})
         row["AP3D draw-0 CI95 width, weather min"] = min(widths) if widths else np.nan
         row["AP3D draw-0 CI95 width, weather max"] = max(widths) if widths else np.nan
         rows.append(row)
