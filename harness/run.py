@@ -112,7 +112,7 @@ PROFILES = {
 # and DV-SECOND, which ran beside a third process for 5 of their 12 epochs, as on an idle machine): the
 # job pool starts the longest first, so that the jobs end together, and the ETA a run prints scales
 # them by the share of each job still to do.
-_SAMPLE_MINUTES = {"mvx_net": 21, "point_rcnn": 26, "pointpillars": 24, "pv_rcnn": 26, "second": 28, "dv_second": 28,
+_SAMPLE_MINUTES = {"mvx_net": 21, "point_rcnn": 26, "pointpillars": 26, "pv_rcnn": 26, "second": 28, "dv_second": 28,
                    "parta2": 25}
 
 

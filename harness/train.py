@@ -55,15 +55,15 @@ TRAIN_CONFIGS = {"tiny": TrainConfig(epochs=2, batch_size=2, lr=3e-3),
 # The compact (default-profile) schedule per model: 14-25 minutes of training each on one CPU
 # thread beside another job (255 frames, batch 2), so that the seven-model default run, data and
 # inference included, stays well inside 150 minutes. Val AP40 3D moderate (45 held-out frames of
-# generator-1.4 data, seed 0) decided the counts: PointPillars 30 epochs (about 45 s each; on the
+# generator-1.4 data, seed 0) decided the counts: PointPillars 30 epochs (about 50 s each; on the
 # current data 18: 68.8, 30: 74.5, BEV 82.8 -> 86.3; on earlier data 6: 59.2, 12: 83.1, 18: 85.2;
 # 64 PFN channels instead of 32 made a step 40 % slower and gave 83.5 at 12);
 # SECOND 12 (6: 70.2, 12: 84.8; at 3 a lottery between seeds), DV-SECOND the same schedule;
-# PV-RCNN 6 and Part-A2 8 from the run's SECOND (Part-A2 at 12: val 88.2 against 83.2, but SOTIF
-# headline 74.0 -> 71.0 with its proposals alone at 76.5: its second stage no longer refined;
-# ``run`` warm-starts them; PV-RCNN at SECOND's 0.2 m
-# voxels from a 6-epoch SECOND: 93.2, cold at 0.4 m after 8: 68.1, after 16: 78.8); PointRCNN 12
-# (8: 7.6, still rising: 0, 0, 0, 3.0, 2.3, 12.8, 9.4, 14.9 on the per-epoch frames); MVX-Net 6
+# PV-RCNN 6 and Part-A2 8 from the run's SECOND (``run`` warm-starts them; PV-RCNN at SECOND's 0.2 m
+# voxels from a 6-epoch SECOND: 93.2, cold at 0.4 m after 8: 68.1, after 16: 78.8; Part-A2 at 12:
+# val 88.2 against 83.2, but SOTIF headline 74.0 -> 71.0 with its proposals alone at 76.5, its second
+# stage no longer refining); PointRCNN 12 (8: 7.6, still rising: 0, 0, 0, 3.0, 2.3, 12.8, 9.4, 14.9 on
+# the per-epoch frames; 24 on current data: 20.5 against 29.9 at 12); MVX-Net 6
 # from the run's DV-SECOND (cold: 31.3; warm at the peak rate 3e-3: 69.4, its per-epoch AP falling
 # from 58.9 to 4.6 in epoch 2 as the rate peaks, hence ``WARM_LR``).
 COMPACT_EPOCHS = {"pointpillars": 30, "second": 12, "dv_second": 12, "parta2": 8, "pv_rcnn": 6,
