@@ -90,13 +90,15 @@ def test_rulebook_gemm_matches_brute_force():
 class _ConvStack(torch.nn.Module):
     """SubM -> strided -> inverse conv on one grid, features and coords in, as the graphs run them."""
 
-    def __init__(self):
+    def __init__(self, shape=SHAPE, channels=(3, 4, 5, 2)):
         super().__init__()
-        self.subm, self.down = SubMConv3d(3, 4), SparseConv3d(4, 5, 3, 2, 1)
-        self.up = SparseInverseConv3d(5, 2, 3, 2, 1)
+        c0, c1, c2, c3 = channels
+        self.shape = shape
+        self.subm, self.down = SubMConv3d(c0, c1), SparseConv3d(c1, c2, 3, 2, 1)
+        self.up = SparseInverseConv3d(c2, c3, 3, 2, 1)
 
     def forward(self, features, coords):
-        x = SparseTensor(features, coords, SHAPE)
+        x = SparseTensor(features, coords, self.shape)
         fine = self.subm(x)
         return self.up(self.down(fine), fine).features
 
@@ -116,15 +118,42 @@ def test_conv_graph_runs_in_onnxruntime_and_openvino_as_in_torch(tmp_path):
         v = torch.export.Dim("v", min=0)
         torch.onnx.export(net, (example.features, example.coords), str(path), dynamo=True,
                           dynamic_shapes=({0: v}, {0: v}), input_names=["features", "coords"], verbose=False)
-    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 2  # a scatter-add of repeated rows loses updates on two threads
+    sess = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
     compiled = ov.Core().compile_model(str(path), "CPU", {"INFERENCE_PRECISION_HINT": "f32"})
-    for n in (0, 1, 150):
+    for n in (0, 1, 150, 594):  # 594: every cell of the grid
         x = _sparse(rng, n, 3)
         with torch.no_grad():
             ref = net(x.features, x.coords).numpy()
         feeds = {"features": x.features.numpy(), "coords": x.coords.numpy()}
         np.testing.assert_allclose(sess.run(None, feeds)[0], ref, rtol=1e-4, atol=1e-5)
         np.testing.assert_allclose(np.asarray(compiled(feeds)[0]), ref, rtol=1e-4, atol=1e-5)
+
+
+def test_conv_graph_is_exact_on_several_onnxruntime_threads(tmp_path):
+    """A frame-sized cloud (8,000 voxels, 32 channels) on four intra-op threads, three times: a
+    scatter-add of repeated output rows in one ScatterND loses updates there; one per kernel
+    offset, whose output rows are unique, does not."""
+    import onnxruntime as ort
+
+    rng = np.random.default_rng(9)
+    shape = (10, 40, 40)
+    net = _ConvStack(shape, (32, 32, 32, 32)).eval()
+    x = _sparse(rng, 8000, 32, shape)
+    path = tmp_path / "convs.onnx"
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        v = torch.export.Dim("v", min=0)
+        torch.onnx.export(net, (x.features, x.coords), str(path), dynamo=True,
+                          dynamic_shapes=({0: v}, {0: v}), input_names=["features", "coords"], verbose=False)
+        ref = net(x.features, x.coords).numpy()
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = 4
+    sess = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    for _ in range(3):
+        got = sess.run(None, {"features": x.features.numpy(), "coords": x.coords.numpy()})[0]
+        np.testing.assert_allclose(got, ref, rtol=1e-4, atol=1e-4)
 
 
 @MODES
