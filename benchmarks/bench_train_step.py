@@ -1,5 +1,5 @@
 """Training-step time of the sparse-conv models: sparse convs as one gather + GEMM over the
-whole (V, 27, C) neighbour table (``models.sparse.table_gemm``, the reference form) against one GEMM per kernel offset over
+whole (V, 27, C) neighbour table (``models.sparse.table_gemm``, the inference form) against one GEMM per kernel offset over
 the occupied entries (``models.sparse.pair_gemm``, what training uses).
 
     python -m benchmarks.bench_train_step [--data DIR] [--models second,dv_second,parta2,pv_rcnn,mvx_net]

@@ -7,10 +7,8 @@ empty cells around the ``(D, H, W)`` grid, is filled by scatter once per resolut
 neighbours of every kernel offset are one gather at ``linear index of the voxel + linear offset
 of the kernel tap`` (the margin catches the taps that leave the grid, so no bounds tests). The
 table ``(V_out, K)`` holds, per output voxel and kernel offset, the input row or ``V_in``
-(which points at an appended zero row). The convolution is then, in its reference form, one GEMM
-``out = features_padded[table].reshape(V_out, K * C_in) @ weight (K * C_in, C_out)``; inference
-runs it over the table's :class:`Rulebook` (the occupied entries only, a LiDAR table is one
-half to three quarters empty) and training over the occupied pairs with its own backward pass.
+(which points at an appended zero row). The convolution is then one GEMM:
+``out = features_padded[table].reshape(V_out, K * C_in) @ weight (K * C_in, C_out)``.
 
 - :class:`SubMConv3d`: submanifold conv, output coords = input coords.
 - :class:`SparseConv3d`: strided ("regular") sparse conv; the output voxels are those whose
@@ -153,25 +151,6 @@ def subm_table(x: SparseTensor, kernel) -> Tensor:
     return x.cache[key]
 
 
-def subm_rulebook(x: SparseTensor, kernel) -> Rulebook:
-    """:class:`Rulebook` of :func:`subm_table`, cached per kernel.
-
-    With an odd kernel the centre offset K // 2 is the identity, and offsets k and K - 1 - k
-    mirror each other (pair (o, i) of one is (i, o) of the other): only offsets below the centre
-    are searched."""
-    key = ("subm rulebook", _triple(kernel))
-    if key not in x.cache:
-        table, v = subm_table(x, kernel), x.coords.shape[0]
-        centre = table.shape[1] // 2
-        if all(n % 2 for n in _triple(kernel)):
-            lower = {k: _occupied(table[:, k], v) for k in range(centre)}
-            upper = {2 * centre - k: (o, i) for k, (i, o) in lower.items()}
-            x.cache[key] = _book({**lower, **upper}, v, identity=centre)
-        else:
-            x.cache[key] = rulebook(table, v)
-    return x.cache[key]
-
-
 def strided_out_coords(x: SparseTensor, kernel, stride, padding) -> tuple[Tensor, tuple]:
     """(V_out, 3) active output coords of a strided conv, sorted by linear index; out shape.
 
@@ -213,68 +192,23 @@ def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padd
     return lookup(coarse.index_grid(), coarse.shape, query, valid, coarse.coords.shape[0])
 
 
-def gather_gemm(features: Tensor, table: Tensor, weight: Tensor, book: Rulebook | None = None) -> Tensor:
+def gather_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
     """(V_out, C_out) = sum_k features[table[:, k]] @ weight[k]; table value V_in = zero row.
 
-    Inference (and export) runs :func:`rulebook_gemm` (over ``book``, the table's rule book if
-    the caller keeps one); with autograd on, :func:`pair_gemm` works on the occupied entries
-    only, which the backward pass repays.
+    Inference (and export) runs :func:`table_gemm`; with autograd on, :func:`pair_gemm` works
+    on the occupied entries only, which the backward pass repays.
     """
     if training_form():
         return pair_gemm(features, table, weight)
-    return rulebook_gemm(features, book or rulebook(table, features.shape[0]), weight)
+    return table_gemm(features, table, weight)
 
 
 def table_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
-    """:func:`gather_gemm` as one gather of the (V_out, K, C_in) table and one GEMM (the
-    reference form: it also multiplies the zero rows of the empty entries)."""
+    """:func:`gather_gemm` as one gather of the (V_out, K, C_in) table and one GEMM."""
     k, c_in, c_out = weight.shape
     padded = torch.cat([features, features.new_zeros(1, c_in)], dim=0)  # (V_in + 1, C_in)
     gathered = take_rows(padded, table)  # (V_out, K, C_in)
     return gathered.reshape(-1, k * c_in) @ weight.reshape(k * c_in, c_out)
-
-
-@dataclass
-class Rulebook:
-    """The occupied entries of a (V_out, K) table as (input rows, output rows) pairs per kernel
-    offset (spconv's rule book), for the inference form; built once per table and shared by the
-    convs that use it."""
-
-    pairs: dict[int, tuple[Tensor, Tensor]]  # offset k -> (M_k,) int64 input rows, output rows (each unique)
-    v_out: int
-    identity: int | None = None  # offset that pairs every row with itself (a submanifold conv's centre)
-
-
-def _occupied(column: Tensor, v_in: int) -> tuple[Tensor, Tensor]:
-    """(input rows, output rows) int64 of the occupied entries of one table column (V_out,)."""
-    out_row = torch.nonzero(column != v_in)[:, 0]  # (M_k,)
-    return take_rows(column, out_row).long(), out_row
-
-
-def _book(pairs: dict, v_out: int, identity: int | None = None) -> Rulebook:
-    return Rulebook(pairs, v_out, identity)
-
-
-def rulebook(table: Tensor, v_in: int) -> Rulebook:
-    """:class:`Rulebook` of ``table`` (value ``v_in`` = empty): one NonZero per offset column."""
-    return _book({k: _occupied(table[:, k], v_in) for k in range(table.shape[1])}, table.shape[0])
-
-
-def rulebook_gemm(features: Tensor, book: Rulebook, weight: Tensor) -> Tensor:
-    """:func:`gather_gemm` over the occupied pairs: per offset a gather of its input rows, a GEMM by
-    ``weight[k]`` and a scatter-add (ONNX ScatterND, reduction add) of the products into their
-    output rows; the identity offset is one GEMM of all rows. Neither the gathers nor the GEMMs
-    touch the empty entries (see docs/performance.md for what this saves in onnxruntime).
-
-    One scatter per offset, not one of all products: within an offset every output row occurs at
-    most once, and onnxruntime's multi-threaded ScatterND adds repeated indices without
-    synchronisation (updates are lost: 0.99 off in a 2-thread test with repeated rows, exact
-    with unique ones)."""
-    out = (features @ weight[book.identity] if book.identity is not None  # (V_out, C_out)
-           else features.new_zeros(book.v_out, weight.shape[2]))
-    for k, (in_row, out_row) in book.pairs.items():
-        out = out.index_add(0, out_row, take_rows(features, in_row) @ weight[k])  # (M_k, C_out) into unique rows
-    return out
 
 
 def pair_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
@@ -344,8 +278,8 @@ class _SparseConvBase(nn.Module):
         nn.init.kaiming_uniform_(self.weight.view(k * c_in, c_out).T, a=math.sqrt(5))
         self.bias = nn.Parameter(torch.zeros(c_out)) if bias else None
 
-    def _conv(self, features: Tensor, table: Tensor, book: Rulebook | None = None) -> Tensor:
-        out = gather_gemm(features, table, self.weight, book)
+    def _conv(self, features: Tensor, table: Tensor) -> Tensor:
+        out = gather_gemm(features, table, self.weight)
         return out if self.bias is None else out + self.bias
 
 
@@ -356,8 +290,7 @@ class SubMConv3d(_SparseConvBase):
         super().__init__(c_in, c_out, kernel, bias)
 
     def forward(self, x: SparseTensor) -> SparseTensor:
-        book = None if training_form() else subm_rulebook(x, self.kernel)  # cached with the table
-        return x.with_features(self._conv(x.features, subm_table(x, self.kernel), book))
+        return x.with_features(self._conv(x.features, subm_table(x, self.kernel)))
 
 
 class SparseConv3d(_SparseConvBase):
