@@ -69,7 +69,7 @@ def eager_vs_ort(ckpt: Path, onnx_path: Path, data: Path, n_frames: int) -> dict
         t0 = time.perf_counter()
         out_o = det(points, None, None)
         t_ort.append(1000 * (time.perf_counter() - t0))
-        ok, d = outputs_agree({"boxes": out_t[0].numpy(), "scores": out_t[1].numpy()}, out_o)
+        ok, d, _ = outputs_agree({"boxes": out_t[0].numpy(), "scores": out_t[1].numpy()}, out_o)
         same.append(ok)
         diffs += [] if np.isnan(d) else [d]
     p50_t, p50_o = float(np.median(t_torch)), float(np.median(t_ort))

@@ -287,11 +287,12 @@ def runtime_table(summary: dict) -> pd.DataFrame:
                "size_mb": _get(m, "size_mb"), "params_m": _get(m, "params") / 1e6,
                "peak_memory_mb": _get(rt, "peak_memory_mb"), "torch_p50_ms": _get(rt, "torch_eager_ms_p50"),
                "ort_speedup": _get(rt, "ort_speedup"), "same_boxes": _get(rt, "agreement", "same_boxes"),
-               "max_score_diff": _get(rt, "agreement", "max_abs_score_diff"), "train_s": _get(m, "train", "seconds")}
+               "max_score_diff": _get(rt, "agreement", "max_abs_score_diff"),
+               "max_box_diff": _get(rt, "agreement", "max_abs_box_diff"), "train_s": _get(m, "train", "seconds")}
         if isinstance(rt.get("openvino"), dict):
             ov = rt["openvino"]
             row.update(ov_p50_ms=_get(ov, "latency_ms_p50"), ov_same_boxes=_get(ov, "agreement", "same_boxes"),
-                       ov_error=ov.get("error"))
+                       ov_max_box_diff=_get(ov, "agreement", "max_abs_box_diff"), ov_error=ov.get("error"))
         row.update(m.get("provenance") or {})  # the ONNX file's data_hash / config_hash, when it carries them
         rows.append(row)
     return pd.DataFrame(rows)
