@@ -68,6 +68,10 @@ def test_an_unknown_split_names_both_readings(make_onnx, tmp_path, dataset, caps
                  "--out", str(tmp_path / "p")]) == 2
     err = capsys.readouterr().err
     assert "--split tset: neither a split of" in err and "ImageSets/tset.txt" in err and "nor an ImageSets file" in err
+    missing = tmp_path / "lists" / "mine.txt"
+    assert main(["--quiet", "predict", "--onnx", str(onnx_path), "--data", str(dataset), "--split", str(missing),
+                 "--out", str(tmp_path / "p")]) == 2
+    assert f"--split {missing}: file not found" in capsys.readouterr().err
 
 
 def test_an_error_lands_on_its_own_line_after_an_open_progress_bar(monkeypatch, capsys):

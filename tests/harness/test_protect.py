@@ -129,3 +129,15 @@ def test_exceptions_pickle_with_their_message(tmp_path):
         again = pickle.loads(pickle.dumps(e))
         assert type(again) is type(e) and str(again) == str(e)
     assert pickle.loads(pickle.dumps(errors[0])).line == 3
+
+
+def test_a_file_that_is_no_checkpoint_is_named_as_such(tmp_path, capsys):
+    for name, content in (("config.json", b'{"model": "pointpillars"}'), ("empty.pt", b""),
+                          ("text.pt", b"checkpoint\n")):
+        path = tmp_path / name
+        path.write_bytes(content)
+        out = tmp_path / "model.onnx"
+        assert main(["--quiet", "export", "--model", "pointpillars", "--checkpoint", str(path), "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert f"{path}: not a checkpoint (neither the zip archive torch.save writes nor a pickle)" in err
+        assert not out.exists()
