@@ -185,7 +185,8 @@ def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None
     df = pd.DataFrame(rows, columns=list(ROW_COLUMNS))
     written = [kitti.write_image_set(root / "ImageSets" / f"{split}.txt",
                                      df.loc[df["split"] == split, "frame_id"].tolist()) for split in ("train", "val", "test")]
-    write_views(root, df.loc[df["split"] == "test", "frame_id"].tolist())  # for OpenPCDet / MMDetection3D
+    write_views(root, df.loc[df["split"] == "test", "frame_id"].tolist(),  # for OpenPCDet / MMDetection3D
+                df["frame_id"].tolist(), cfg.lidar.mount_height)
     written.append(kitti.write_frames_meta(root / "meta" / "frames.csv", df))
     files = {rel: h for r in records for rel, h in r["files"].items()}
     files.update({str(p.relative_to(root)): sha256(p) for p in written})

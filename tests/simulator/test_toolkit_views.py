@@ -79,7 +79,7 @@ def test_stock_info_generation_runs_on_the_sotif_set(sotif_set):
 def test_views_are_relative_links_inside_the_data_set(sotif_set, tmp_path):
     links = sorted(p for p in sotif_set.rglob("*") if p.is_symlink())
     test = kitti.read_image_set(sotif_set / "ImageSets" / "test.txt")
-    assert len(links) == 7 * len(test)  # testing/ without labels, the view root with them
+    assert len(links) == 8 * len(test)  # testing/ without labels, the view root with them and the planes
     for p in links:
         target = os.readlink(p)
         assert not os.path.isabs(target) and p.resolve().is_relative_to(sotif_set.resolve() / "training")
@@ -109,3 +109,50 @@ def test_fewer_frames_leave_no_dangling_link_and_training_scenes_need_no_view(tm
     train = generate(tmp_path / "t", "train", frames=3, seed=1, workers=1, progress=False)
     infos = stock_info_steps(train)
     assert infos["train"] and infos["test"] == [] and not (train / VIEW_ROOT / "ImageSets").exists()
+
+
+def _road_plane_as_openpcdet_reads_it(path):
+    """OpenPCDet's KittiDataset.get_road_plane: line 4, normal flipped to point up (y < 0), unit length."""
+    plane = np.array([float(v) for v in path.read_text().splitlines()[3].split()])
+    plane = -plane if plane[1] > 0 else plane
+    return plane / np.linalg.norm(plane[:3])
+
+
+def test_road_planes_lie_on_the_simulated_road_and_under_every_car(sotif_set, tmp_path):
+    """The planes OpenPCDet's ground-truth sampler (USE_ROAD_PLANE) reads: one per frame, on the road
+    the LiDAR sees and under the labelled cars, computed here from the raw calib matrices."""
+    frames = sorted(p.stem for p in (sotif_set / "training" / "velodyne").glob("*.bin"))
+    assert sorted(p.stem for p in (sotif_set / "training" / "planes").glob("*.txt")) == frames
+    test = kitti.read_image_set(sotif_set / "ImageSets" / "test.txt")
+    assert sorted(p.stem for p in (sotif_set / VIEW_ROOT / "training" / "planes").iterdir()) == sorted(test)
+    n_cars = 0
+    for fid in frames:
+        a, b, c, d = _road_plane_as_openpcdet_reads_it(sotif_set / "training" / "planes" / f"{fid}.txt")
+        m = _calib_matrices(sotif_set / "training" / "calib" / f"{fid}.txt")
+        r0, tr = m["R0_rect"].reshape(3, 3), m["Tr_velo_to_cam"].reshape(3, 4)
+        pts = np.fromfile(sotif_set / "training" / "velodyne" / f"{fid}.bin", np.float32).reshape(-1, 4)[:, :3]
+        near = pts[(pts[:, 0] > 5) & (pts[:, 0] < 40) & (np.abs(pts[:, 1]) < 8)].astype(np.float64)
+        rect = (near @ tr[:, :3].T + tr[:, 3]) @ r0.T
+        height = rect @ np.array([a, b, c]) + d  # above the road > 0: the normal points up
+        assert np.mean(np.abs(height) < 0.03) > 0.5  # most returns ahead are road returns, on the plane
+        assert np.percentile(height, 1) > -0.05  # and nothing lies below it
+        # OpenPCDet's put_boxes_on_road_planes moves a sampled box so that its bottom sits at the
+        # plane's y below its centre: for the labelled cars the move is (nearly) nothing
+        for line in (sotif_set / "training" / "label_2" / f"{fid}.txt").read_text().splitlines():
+            f = line.split()
+            if f[0] != "Car":
+                continue
+            x, y, z = map(float, f[11:14])  # bottom centre, rectified camera frame
+            assert abs((-d - a * x - c * z) / b - y) < 0.05
+            n_cars += 1
+    assert n_cars > 0
+
+
+def test_planes_follow_the_frames_of_the_data_set(tmp_path):
+    out = generate(tmp_path / "s", "train", frames=3, seed=1, workers=1, progress=False)
+    assert sorted(p.stem for p in (out / "training" / "planes").glob("*.txt")) == \
+        sorted(p.stem for p in (out / "training" / "velodyne").glob("*.bin"))
+    generate(out, "train", frames=2, seed=1, workers=1, progress=False)
+    assert sorted(p.stem for p in (out / "training" / "planes").glob("*.txt")) == \
+        sorted(p.stem for p in (out / "training" / "velodyne").glob("*.bin"))
+    assert len(list((out / "training" / "planes").iterdir())) == 2  # the dropped frame's plane went with it
