@@ -206,11 +206,12 @@ def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, soti
 
 def _runtime_probe(stages: Stages, cfg: RunConfig, run_dir: Path, name: str) -> dict:
     import importlib.util
-    from harness.runtime import compare_openvino, compare_torch_onnx
+    from harness.runtime import BOX_ATOL, compare_openvino, compare_torch_onnx
     onnx_path = run_dir / "models" / f"{name}.onnx"
     data = run_dir / "data" / "sotif"
     has_ov = importlib.util.find_spec("openvino") is not None
-    key = {"onnx": file_digest(onnx_path), "frames": cfg.runtime_frames, "openvino": has_ov}
+    # the tolerance of "same boxes" is part of what the probe measured
+    key = {"onnx": file_digest(onnx_path), "frames": cfg.runtime_frames, "openvino": has_ov, "box_atol": BOX_ATOL}
     return stages.run(f"runtime_{name}", key,
                       lambda: {**compare_torch_onnx(checkpoint_of(run_dir, name), onnx_path, data,
                                                     n_frames=cfg.runtime_frames),
