@@ -132,6 +132,8 @@ def cmd_evaluate(a) -> int:
         a.meta = a.meta or (str(data / "meta" / "frames.csv") if a.group_by else None)
     if not labels or not predictions:
         raise ValueError("evaluate needs --labels and --predictions (or --onnx with --data)")
+    if a.group_by and not a.meta and (_data_root(labels) / "meta" / "frames.csv").is_file():
+        a.meta = str(_data_root(labels) / "meta" / "frames.csv")  # the labels' own data set's table
     if split is not None:  # a split name or file, as a file
         root = _data_root(labels)
         split = _split(split, root) if isinstance(split, str) else split
@@ -241,7 +243,8 @@ def _add_evaluate(sub, quiet) -> None:
     s.add_argument("--predictions", help="folder of KITTI result files (from predict)")
     s.add_argument("--split", help=SPLIT_HELP + " (default: every label file; with --onnx: test)")
     s.add_argument("--group-by", help="a column of meta/frames.csv, e.g. weather")
-    s.add_argument("--meta", help="with --group-by: the data set's meta/frames.csv")
+    s.add_argument("--meta", help="with --group-by: the data set's meta/frames.csv (default: the one "
+                   "beside the labels, <root>/meta/frames.csv, when there is one)")
     s.add_argument("--output", required=True, help="results.json to write")
     s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.add_argument("--onnx", help="bring your own detector: predict with this ONNX file first")

@@ -92,6 +92,15 @@ def test_cli_evaluate_refuses_bad_paths_and_tables_before_work(tmp_path, dataset
     assert main(grouped + [str(tmp_path / "empty_cell.csv")]) == 2
     assert "empty_cell.csv: column 'weather' is empty for 1 frames of the split (first: 000000)" in capsys.readouterr().err
     assert main(grouped + [str(tmp_path / "short_ids.csv")]) == 0  # ids padded to six digits match
+    # without --meta: the labels' own data set's table, else a clear error
+    assert main(args + ["--output", str(tmp_path / "r2.json"), "--group-by", "weather"]) == 0
+    assert json.loads((tmp_path / "r2.json").read_text())["groups"].keys() == \
+        json.loads((tmp_path / "r.json").read_text())["groups"].keys()
+    bare = tmp_path / "bare"
+    shutil.copytree(dataset / "training", bare / "training")
+    assert main(["evaluate", "--quiet", "--labels", str(bare), "--predictions", str(pred), "--group-by", "weather",
+                 "--output", str(tmp_path / "r3.json")]) == 2
+    assert "--group-by needs --meta meta/frames.csv" in capsys.readouterr().err
 
 
 def test_cli_evaluate_bring_your_own_onnx(make_onnx, tmp_path, dataset):
