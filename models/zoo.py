@@ -14,6 +14,7 @@
 """
 from __future__ import annotations
 
+import hashlib
 import importlib
 import pickle
 import re
@@ -116,6 +117,17 @@ def load_checkpoint(path) -> tuple[Detector, dict]:
 # the sibling's checkpoint). PV-RCNN and Part-A2 call SECOND's anchor head their RPN, and Part-A2's
 # sparse U-Net holds SECOND's 3D backbone as its encoder.
 WARM_START_ALIASES = {"pv_rcnn": (("rpn.", "head."),), "parta2": (("rpn.", "head."), ("unet.encoder.", "backbone3d."))}
+
+
+def weights_digest(state_dict: dict) -> str:
+    """SHA-256 (16 hex) of a state dict's tensors (names, dtypes, shapes, values): the identity of
+    trained weights, which the checkpoint file's bytes are not (they also hold the training time)."""
+    h = hashlib.sha256()
+    for name in sorted(state_dict):
+        t = state_dict[name].detach().cpu().contiguous()
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()[:16]
 
 
 def warm_start(net: torch.nn.Module, model: str, path) -> tuple[list[str], list[str]]:

@@ -1,3 +1,5 @@
+import hashlib
+
 import numpy as np
 import pytest
 import torch
@@ -277,3 +279,26 @@ def test_train_init_from_a_sibling_is_its_own_training(tmp_path, capsys):
     capsys.readouterr()
     assert main(args + ["--out", str(tmp_path / "x"), "--init-from", str(tmp_path / "missing.pt")]) == 2
     assert "missing.pt: checkpoint not found" in capsys.readouterr().err
+    # the same sibling weights in another file (another training time, as on a rerun): the same training
+    ckpt = torch.load(second, weights_only=True)
+    ckpt["train_seconds"] = ckpt["train_seconds"] + 123.0
+    torch.save(ckpt, tmp_path / "second_again.pt")
+    assert main(args + ["--out", str(tmp_path / "again"), "--init-from", str(tmp_path / "second_again.pt")]) == 0
+    again = torch.load(tmp_path / "again" / "checkpoint.pt", weights_only=True)
+    assert again["config_hash"] == warm["config_hash"]
+    assert all(torch.equal(again["state_dict"][k], warm["state_dict"][k]) for k in warm["state_dict"])
+
+
+def test_weights_digest_against_hashlib_over_the_raw_bytes():
+    rng = np.random.default_rng(0)
+    sd = {"b": torch.from_numpy(rng.normal(size=(3, 4)).astype(np.float32)), "a": torch.arange(5),
+          "empty": torch.zeros(0, 2), "n": torch.tensor(7)}
+    h = hashlib.sha256()
+    for name in ("a", "b", "empty", "n"):
+        t = sd[name]
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode() + t.numpy().tobytes())
+    assert zoo.weights_digest(sd) == h.hexdigest()[:16]
+    changed = dict(sd, b=sd["b"].clone())
+    changed["b"][1, 2] = float(np.nextafter(np.float32(changed["b"][1, 2].item()), np.float32(np.inf)))
+    assert zoo.weights_digest(changed) != zoo.weights_digest(sd)
+    assert zoo.weights_digest({"a": sd["a"].double()}) != zoo.weights_digest({"a": sd["a"]})
