@@ -64,6 +64,8 @@ def _split(split: str, root: Path | None) -> str | Path:
         return split
     if Path(split).is_file():
         return Path(split)
+    if root is not None and "/" not in split and (root / "ImageSets" / split).is_file():  # "val.txt"
+        return root / "ImageSets" / split
     if "/" in split or split.endswith(".txt"):  # meant as a file, not as a split name
         raise ValueError(f"--split {split}: file not found" if not Path(split).exists()
                          else f"--split {split}: not a file (an ImageSets file lists one frame id per line)")

@@ -72,6 +72,10 @@ def test_an_unknown_split_names_both_readings(make_onnx, tmp_path, dataset, caps
     assert main(["--quiet", "predict", "--onnx", str(onnx_path), "--data", str(dataset), "--split", str(missing),
                  "--out", str(tmp_path / "p")]) == 2
     assert f"--split {missing}: file not found" in capsys.readouterr().err
+    out = tmp_path / "by_file_name"  # the split's file name, as ImageSets holds it
+    assert main(["--quiet", "predict", "--onnx", str(onnx_path), "--data", str(dataset), "--split", "test.txt",
+                 "--out", str(out)]) == 0
+    assert sorted(p.stem for p in out.glob("*.txt")) == (dataset / "ImageSets" / "test.txt").read_text().split()
 
 
 def test_an_error_lands_on_its_own_line_after_an_open_progress_bar(monkeypatch, capsys):
