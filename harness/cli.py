@@ -134,10 +134,10 @@ def cmd_evaluate(a) -> int:
         a.meta = a.meta or (str(data / "meta" / "frames.csv") if a.group_by else None)
     if not labels or not predictions:
         raise ValueError("evaluate needs --labels and --predictions (or --onnx with --data)")
-    if a.group_by and not a.meta and (_data_root(labels) / "meta" / "frames.csv").is_file():
-        a.meta = str(_data_root(labels) / "meta" / "frames.csv")  # the labels' own data set's table
+    root = _data_root(labels)
+    if a.group_by and not a.meta and (root / "meta" / "frames.csv").is_file():
+        a.meta = str(root / "meta" / "frames.csv")  # the labels' own data set's table
     if split is not None:  # a split name or file, as a file
-        root = _data_root(labels)
         split = _split(split, root) if isinstance(split, str) else split
         split = root / "ImageSets" / f"{split}.txt" if isinstance(split, str) else split
     inputs = {"--labels": label_dir(labels), "--predictions": predictions, "--split": split, "--meta": a.meta,

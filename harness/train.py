@@ -319,9 +319,10 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
         raise ValueError(f"epochs must be >= 1, got {epochs}")
     net = _build(model, profile, seed)
     warm = {}  # a sibling's first stage, part of the identity: a changed sibling is another training
-    if init_from is not None:  # the sibling's weights, not its file (whose training time differs on a rerun)
+    if init_from is not None:  # the weights it brought in, not the file (whose training time differs on a rerun)
         loaded, _ = zoo.warm_start(net, model, init_from)
-        warm = {"warm_start": {"init_weights": zoo.weights_digest(zoo.read_checkpoint(init_from)["state_dict"]),
+        own = net.state_dict()
+        warm = {"warm_start": {"init_weights": zoo.weights_digest({n: own[n] for n in loaded}),
                                "warm_tensors": len(loaded)}}
     ds = KittiDataset(data, "train", with_image=net.uses_camera)
     if len(ds) == 0:

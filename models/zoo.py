@@ -78,8 +78,8 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     with path.open("rb") as f:
-        head = f.read(2)
-    if not zipfile.is_zipfile(path) and head[:1] != b"\x80":  # torch.save: a zip archive, or a legacy pickle
+        first = f.read(1)
+    if not zipfile.is_zipfile(path) and first != b"\x80":  # torch.save: a zip archive, or a legacy pickle
         raise CheckpointError(f"{path}: not a checkpoint (neither the zip archive torch.save writes nor a pickle)")
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)

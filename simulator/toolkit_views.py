@@ -92,21 +92,19 @@ def _frame_links(ids: list[str], kind: str, depth: int) -> dict[str, str]:
     return {f"{i}{ext}": str(Path(*[".."] * depth, "training", kind, f"{i}{ext}")) for i in ids}
 
 
-def write_views(root: Path, test: list[str], frames: list[str] | None = None, mount_height: float | None = None) -> None:
-    """Write the ``testing/`` and ``test_as_val/`` views of ``root`` for its test frames ``test``, and,
-    given the data set's ``frames`` and the LiDAR's ``mount_height``, their road planes. They are
+def write_views(root: Path, test: list[str], frames: list[str], mount_height: float) -> None:
+    """Write the road planes of the data set's ``frames`` (the LiDAR ``mount_height`` above the road)
+    and the ``testing/`` and ``test_as_val/`` views of ``root`` for its test frames ``test``. They are
     derived from ImageSets/test.txt and the calib files, so meta/dataset.json does not list them."""
     root = Path(root)
-    if frames is not None and mount_height is not None:
-        write_planes(root, frames, mount_height)
+    write_planes(root, frames, mount_height)
     for kind in TESTING_KINDS:
         _sync_links(root / "testing" / kind, _frame_links(test, kind, 2))
     view = root / VIEW_ROOT
     for kind in kitti.KINDS:
         _sync_links(view / "training" / kind, _frame_links(test, kind, 3))
-    if (root / "training" / PLANES).is_dir():
-        _sync_links(view / "training" / PLANES, {f"{i}.txt": str(Path("..", "..", "..", "training", PLANES, f"{i}.txt"))
-                                                   for i in test})
+    _sync_links(view / "training" / PLANES, {f"{i}.txt": str(Path("..", "..", "..", "training", PLANES, f"{i}.txt"))
+                                               for i in test})
     for split, ids in (("train", []), ("val", test), ("test", [])):
         if test:
             kitti.write_image_set(view / "ImageSets" / f"{split}.txt", ids)

@@ -118,7 +118,7 @@ def _road_plane_as_openpcdet_reads_it(path):
     return plane / np.linalg.norm(plane[:3])
 
 
-def test_road_planes_lie_on_the_simulated_road_and_under_every_car(sotif_set, tmp_path):
+def test_road_planes_lie_on_the_simulated_road_and_under_every_car(sotif_set):
     """The planes OpenPCDet's ground-truth sampler (USE_ROAD_PLANE) reads: one per frame, on the road
     the LiDAR sees and under the labelled cars, computed here from the raw calib matrices."""
     frames = sorted(p.stem for p in (sotif_set / "training" / "velodyne").glob("*.bin"))
