@@ -27,11 +27,21 @@ def test_matched_errors_pairs_each_proposal_with_its_refined_row():
                      [30.0, 5.5, -1.2, 4.0, 1.8, 1.5, math.pi]])  # near car 1, heading flipped
     refined = rois.copy()
     refined[:, 0] -= 0.3
-    at_roi, at_rcnn = matched_errors(rois, refined, cars)
-    assert at_roi.shape == at_rcnn.shape == (2, 7)
+    at_roi, at_rcnn, ious = matched_errors(rois, refined, cars)
+    assert at_roi.shape == at_rcnn.shape == (2, 7) and ious.shape == (2, 3)
     np.testing.assert_allclose(at_roi[:, 0], [0.4, 0.0], atol=1e-12)
     np.testing.assert_allclose(at_rcnn[:, 0], [0.1, 0.3], atol=1e-12)
     np.testing.assert_allclose(at_roi[:, 2], [0.1, 0.2], atol=1e-12)
     np.testing.assert_allclose(at_roi[:, 6], [0.1, 0.0], atol=1e-12)
     none = matched_errors(rois, refined, np.zeros((0, 7)))
-    assert none[0].shape == (0, 7)
+    assert none[0].shape == (0, 7) and none[2].shape == (0, 3)
+
+
+def test_ious_against_the_height_overlap_by_hand():
+    # aligned boxes with the same footprint: the 3D IoU is the height overlap over the union
+    car = np.array([[10.0, 0, -1.0, 4, 2, 1.5, 0]])
+    roi = np.array([[10.0, 0, -0.8, 4, 2, 1.3, 0]])  # z 0.2 m up, 0.2 m lower
+    refined = np.array([[10.0, 0, -1.0, 4, 2, 1.4, 0]])
+    _, _, ious = matched_errors(roi, refined, car)
+    # roi spans [-1.45, -0.15], car [-1.75, -0.25]: overlap 1.2, union 1.3 + 1.5 - 1.2 = 1.6
+    np.testing.assert_allclose(ious[0], [1.2 / 1.6, 1.0, 1.4 / 1.5], atol=1e-9)
