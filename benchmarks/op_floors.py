@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import tempfile
-import time
 from pathlib import Path
 
 import numpy as np
@@ -35,20 +34,9 @@ import torch
 from onnx import TensorProto, helper
 from torch._higher_order_ops.while_loop import while_loop
 
-from benchmarks.ort_profile import gemm_peak, profile_frames, session
+from benchmarks.ort_profile import cpu_ms, gemm_peak, profile_frames, session
 from harness import kitti
 from models.pointnet2 import _fps_graph, ball_queries, three_nn_interpolate
-
-
-def cpu_ms(sess: ort.InferenceSession, feeds: dict, repeats: int) -> float:
-    """Best CPU time of ``repeats`` runs after one warm-up run, ms."""
-    sess.run(None, feeds)
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.process_time()
-        sess.run(None, feeds)
-        best = min(best, time.process_time() - t0)
-    return 1000.0 * best
 
 
 def exported(module: torch.nn.Module, args: tuple, dims: tuple, folder: Path, name: str) -> ort.InferenceSession:
@@ -180,14 +168,12 @@ def main(argv=None) -> int:
         rows = []
 
         # farthest point sampling, every level of the backbone
-        fps_graph = 0.0
+        fps_graph = fps_floor = 0.0
         sizes = (cfg.num_points, *cfg.sa_npoints)
+        d0 = ((xyz - xyz[0]) ** 2).sum(1).astype(np.float32)
         for level, (src, num) in enumerate(zip(sizes[:-1], sizes[1:])):
             sess = exported(Fps(num), (torch.randn(src, 3),), ({0: n},), folder, f"fps{level}")
             fps_graph += cpu_ms(sess, {"xyz": xyz[:src]}, rep)
-        d0 = ((xyz - xyz[0]) ** 2).sum(1).astype(np.float32)
-        fps_floor = 0.0
-        for level, (src, num) in enumerate(zip(sizes[:-1], sizes[1:])):
             sess = exported(FpsFloor(num), (torch.ones(src),), ({0: n},), folder, f"fpsfloor{level}")
             fps_floor += cpu_ms(sess, {"d0": d0[:src]}, rep)
         empty = cpu_ms(exported(EmptyLoop(sizes[1]), (torch.zeros(4, 3),), ({0: n},), folder, "empty"),

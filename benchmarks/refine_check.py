@@ -60,7 +60,7 @@ def main(argv=None) -> int:
     p.add_argument("--split", default="val")
     p.add_argument("--threads", type=int, default=2)
     args = p.parse_args(argv)
-    ds = KittiDataset(args.run / "data" / "train", args.split, with_image="mvx_net" in args.models)
+    ds = KittiDataset(args.run / "data" / "train", args.split)
     print(f"{len(ds)} {args.split} frames of {args.run / 'data' / 'train'}; proposals within 1 m of a car; "
           "mean (median) |error| in m, yaw in rad")
     print("| model | proposals | stage | " + " | ".join(NAMES) + " |")
@@ -74,7 +74,7 @@ def main(argv=None) -> int:
         roi_err, rcnn_err, ious = [], [], []
         for i in range(len(ds)):
             sample = ds[i]
-            out = det(sample.points, sample.image, sample.lidar2img)
+            out = det(sample.points)
             a, b, c = matched_errors(out["rois"], out["rcnn_boxes"], sample.boxes_of("Car"))
             roi_err.append(a)
             rcnn_err.append(b)
