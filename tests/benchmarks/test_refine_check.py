@@ -45,3 +45,17 @@ def test_ious_against_the_height_overlap_by_hand():
     _, _, ious = matched_errors(roi, refined, car)
     # roi spans [-1.45, -0.15], car [-1.75, -0.25]: overlap 1.2, union 1.3 + 1.5 - 1.2 = 1.6
     np.testing.assert_allclose(ious[0], [1.2 / 1.6, 1.0, 1.4 / 1.5], atol=1e-9)
+
+
+def test_ranked_by_iou_scores_each_box_by_its_best_car_then_suppresses():
+    from benchmarks.refine_check import ranked_by_iou
+    cars = np.array([[10.0, 0, -1.0, 4, 2, 1.5, 0], [30.0, 5, -1.0, 4, 2, 1.5, 0]])
+    boxes = np.array([[10.0, 0, -0.8, 4, 2, 1.3, 0],     # car 0, 0.2 m high and 0.2 m short: 1.2 / 1.6
+                      [10.0, 0, -1.0, 4, 2, 1.5, 0],     # car 0 exactly: 1.0, suppresses the one above
+                      [31.0, 5, -1.0, 4, 2, 1.5, 0],     # car 1, 1 m along x: 3 / 5 of the footprint
+                      [50.0, -9, -1.0, 4, 2, 1.5, 0]])   # no car: dropped
+    kept, scores = ranked_by_iou(boxes, cars)
+    np.testing.assert_allclose(kept, boxes[[1, 2]], atol=1e-6)
+    np.testing.assert_allclose(scores, [1.0, 3.0 / 5.0], atol=1e-6)
+    assert ranked_by_iou(boxes, np.zeros((0, 7)))[0].shape == (0, 7)
+    assert ranked_by_iou(np.zeros((0, 7)), cars)[1].shape == (0,)
