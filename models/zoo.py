@@ -10,10 +10,15 @@
 - ``load_checkpoint(path) -> (Detector, meta)``: rebuilds the model of a checkpoint written by
   ``harness.train.train`` (keys: model, profile, config, state_dict, epoch, optimizer,
   data_hash, config_hash) and loads its weights; ``meta`` is the checkpoint without the
-  state dicts.
+  state dicts. The model is built from the config the checkpoint was trained with, not from the
+  profile's config of the code that loads it: a config changed since (a point count, an NMS
+  threshold) would otherwise run the weights in a network they were not trained in, and many
+  such changes leave every weight's shape alone. ``meta["config_changed"]`` lists the fields
+  where the two differ.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import importlib
 import pickle
@@ -95,14 +100,74 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     return ckpt
 
 
+def config_from_dict(base, saved: dict, where: str = ""):
+    """The config dataclass ``base`` with the values of ``saved`` (``dataclasses.asdict`` of a
+    config of the same class; nested configs field by field). A field ``saved`` lacks keeps the
+    base's value; a field ``base`` lacks is a ValueError naming it."""
+    if not isinstance(saved, dict):
+        raise ValueError(f"{where or 'config'}: a {type(saved).__name__}, not a mapping of fields")
+    names = {f.name for f in dataclasses.fields(base)}
+    unknown = sorted(set(saved) - names)
+    if unknown:
+        raise ValueError(f"fields this code's {type(base).__name__} does not have: "
+                         + ", ".join(f"{where}{k}" for k in unknown))
+    return dataclasses.replace(base, **{n: _rebuilt(getattr(base, n), saved[n], f"{where}{n}") for n in names & set(saved)})
+
+
+def _rebuilt(old, new, where: str):
+    """A saved value ``new`` in the type of the config's value ``old``: a nested config from its
+    dict, a tuple (of configs: each from the template at its place, or the first) from a sequence."""
+    if dataclasses.is_dataclass(old):
+        return config_from_dict(old, new, where + ".")
+    if isinstance(old, tuple) and isinstance(new, (tuple, list)):
+        if not old:
+            return tuple(new)
+        return tuple(_rebuilt(old[min(i, len(old) - 1)], v, f"{where}[{i}]") for i, v in enumerate(new))
+    return new
+
+
+def config_changes(a, b, where: str = "") -> list[str]:
+    """Dotted names of the fields where the config dataclasses a and b differ."""
+    out = []
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if dataclasses.is_dataclass(x) and dataclasses.is_dataclass(y):
+            out += config_changes(x, y, f"{where}{f.name}.")
+        elif x != y:
+            out.append(f"{where}{f.name}")
+    return out
+
+
+def detector_class(name: str) -> type:
+    """The detector class of a model name (the Detector subclass whose ``architecture`` it is)."""
+    module = _module(name)
+    return next(c for c in vars(module).values() if isinstance(c, type) and issubclass(c, Detector)
+                and c.__dict__.get("architecture") == name)
+
+
 def load_checkpoint(path) -> tuple[Detector, dict]:
-    """(model in eval mode, metadata) from a checkpoint file."""
+    """(model in eval mode, metadata) from a checkpoint file, built with the config it was
+    trained with (module docstring)."""
     path = Path(path)
     ckpt = read_checkpoint(path)
     missing = {"model", "profile", "state_dict"} - set(ckpt)
     if missing:
         raise CheckpointError(f"{path}: checkpoint lacks {', '.join(sorted(missing))}")
-    model = build(ckpt["model"], ckpt["profile"])
+    try:
+        current = config(ckpt["model"], ckpt["profile"])
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    changed: list[str] = []
+    if "config" in ckpt:
+        try:
+            trained = config_from_dict(current, ckpt["config"])
+        except (ValueError, TypeError) as exc:
+            raise CheckpointError(f"{path}: its {ckpt['model']}/{ckpt['profile']} config does not fit this "
+                                  f"code ({exc}); it was trained by another version") from None
+        changed = config_changes(current, trained)
+        model = detector_class(ckpt["model"])(trained) if changed else build(ckpt["model"], ckpt["profile"])
+    else:
+        model = build(ckpt["model"], ckpt["profile"])
     try:
         model.load_state_dict(ckpt["state_dict"])
     except RuntimeError as exc:
@@ -110,6 +175,8 @@ def load_checkpoint(path) -> tuple[Detector, dict]:
                               f"{exc}") from exc
     model.eval()
     meta = {k: v for k, v in ckpt.items() if k not in ("state_dict", "optimizer")}
+    if changed:
+        meta["config_changed"] = changed
     return model, meta
 
 

@@ -43,3 +43,46 @@ def test_load_checkpoint_roundtrip_and_errors(tmp_path):
     torch.save({"model": "pointpillars", "profile": "tiny", "state_dict": model.state_dict()}, tmp_path / "x.pt")
     with pytest.raises(zoo.CheckpointError, match="do not fit"):
         zoo.load_checkpoint(tmp_path / "x.pt")
+
+
+@pytest.mark.parametrize("name", zoo.MODEL_NAMES)
+def test_config_from_dict_rebuilds_every_profile_exactly(name, tmp_path):
+    import dataclasses
+    for profile, cfg in zoo._module(name).CONFIGS.items():
+        saved = dataclasses.asdict(cfg)
+        assert zoo.config_from_dict(cfg, saved) == cfg, profile
+        # through torch.save / load (weights_only), as a checkpoint stores it
+        torch.save({"config": saved}, tmp_path / "c.pt")
+        stored = torch.load(tmp_path / "c.pt", weights_only=True)["config"]
+        assert zoo.config_from_dict(cfg, stored) == cfg and zoo.config_changes(cfg, cfg) == [], profile
+    assert zoo.detector_class(name).architecture == name
+
+
+def test_load_checkpoint_builds_the_config_it_was_trained_with(tmp_path):
+    import dataclasses
+    from models.point_rcnn import CONFIGS
+    tiny = CONFIGS["tiny"]
+    trained = dataclasses.replace(tiny, pre_nms=tiny.pre_nms * 2, sa_npoints=(48, 12),
+                                  targets=dataclasses.replace(tiny.targets, score_type="roi_iou"))
+    model = zoo.detector_class("point_rcnn")(trained)
+    torch.save({"model": "point_rcnn", "profile": "tiny", "config": dataclasses.asdict(trained),
+                "state_dict": model.state_dict()}, tmp_path / "p.pt")
+    loaded, meta = zoo.load_checkpoint(tmp_path / "p.pt")
+    # the weights' shapes fit either config: only the saved one is the network they were trained in
+    assert loaded.cfg == trained and loaded.cfg != tiny
+    assert sorted(meta["config_changed"]) == ["pre_nms", "sa_npoints", "targets.score_type"]
+    torch.save({"model": "point_rcnn", "profile": "tiny", "config": dataclasses.asdict(tiny),
+                "state_dict": zoo.build("point_rcnn", "tiny").state_dict()}, tmp_path / "same.pt")
+    loaded, meta = zoo.load_checkpoint(tmp_path / "same.pt")
+    assert loaded.cfg == tiny and "config_changed" not in meta
+    bad = dataclasses.asdict(tiny) | {"warp_drive": 9}
+    torch.save({"model": "point_rcnn", "profile": "tiny", "config": bad,
+                "state_dict": model.state_dict()}, tmp_path / "bad.pt")
+    with pytest.raises(zoo.CheckpointError, match=r"bad\.pt: .*warp_drive"):
+        zoo.load_checkpoint(tmp_path / "bad.pt")
+    nested = dataclasses.asdict(tiny)
+    nested["targets"]["flux"] = 1
+    torch.save({"model": "point_rcnn", "profile": "tiny", "config": nested,
+                "state_dict": model.state_dict()}, tmp_path / "nested.pt")
+    with pytest.raises(zoo.CheckpointError, match=r"targets\.flux"):
+        zoo.load_checkpoint(tmp_path / "nested.pt")
