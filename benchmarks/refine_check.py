@@ -23,7 +23,6 @@ import math
 from pathlib import Path
 
 import numpy as np
-
 import torch
 
 from harness.boxes import iou_3d

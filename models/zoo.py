@@ -157,17 +157,15 @@ def load_checkpoint(path) -> tuple[Detector, dict]:
         current = config(ckpt["model"], ckpt["profile"])
     except ValueError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
-    changed: list[str] = []
+    trained = current
     if "config" in ckpt:
         try:
             trained = config_from_dict(current, ckpt["config"])
         except (ValueError, TypeError) as exc:
             raise CheckpointError(f"{path}: its {ckpt['model']}/{ckpt['profile']} config does not fit this "
                                   f"code ({exc}); it was trained by another version") from None
-        changed = config_changes(current, trained)
-        model = detector_class(ckpt["model"])(trained) if changed else build(ckpt["model"], ckpt["profile"])
-    else:
-        model = build(ckpt["model"], ckpt["profile"])
+    changed = config_changes(current, trained)
+    model = detector_class(ckpt["model"])(trained)
     try:
         model.load_state_dict(ckpt["state_dict"])
     except RuntimeError as exc:
