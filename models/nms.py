@@ -14,7 +14,8 @@
 With boxes sorted by score and S[j, i] = (j < i and IoU(j, i) > t), greedy NMS keeps box i
 iff no KEPT box j suppresses it. Iterating ``keep <- not any_j(keep[j] and S[j, i])`` from
 all-True reaches that unique fixed point (after t rounds the first t entries are final; in
-practice a few rounds), so the result equals greedy NMS exactly. The loop is a
+practice a few rounds), so the result equals greedy NMS exactly. A round is a scatter-add over
+the suppressing pairs (j, i), not a pass over the K x K matrix. The loop is a
 ``torch._higher_order_ops.while_loop``, which the dynamo exporter turns into an ONNX Loop.
 The rotated IoU is computed only for the pairs whose axis-aligned BEV bounds could overlap
 enough: a few percent of the K^2 pairs of detections.
@@ -32,13 +33,18 @@ def _cond(keep: Tensor, changed: Tensor) -> Tensor:
     return changed.clone()
 
 
-def suppress_fixed_point(suppress: Tensor) -> Tensor:
-    """(K,) bool keep mask for a strictly upper-triangular suppression matrix (K, K)."""
+def suppress_fixed_point(j: Tensor, i: Tensor, k: int) -> Tensor:
+    """(k,) bool keep mask for the suppressing pairs j < i (P,), (P,) of k boxes given best first.
+
+    One round costs O(P), not O(k^2): box i counts the kept boxes among its suppressors by a
+    scatter-add over the pairs.
+    """
     def body(keep: Tensor, changed: Tensor):
-        new = ~((keep[:, None] & suppress).sum(dim=0) > 0)
+        hits = keep.new_zeros(k, dtype=torch.float32).index_add(0, i, keep[j].to(torch.float32))  # (k,)
+        new = hits == 0
         return new, (new != keep).sum() > 0  # sum, not any: an empty ReduceMax is not False
 
-    keep = torch.ones(suppress.shape[0], dtype=torch.bool)
+    keep = torch.ones(k, dtype=torch.bool)
     if torch.compiler.is_exporting():
         keep, _ = while_loop(_cond, body, (keep, torch.ones((), dtype=torch.bool)))
         return keep
@@ -75,9 +81,8 @@ def nms_in_order(boxes: Tensor, iou_thresh: float) -> Tensor:
     """
     k = boxes.shape[0]
     j, i = torch.nonzero(suppression_candidates(boxes, iou_thresh), as_tuple=True)  # (P,), (P,)
-    over = iou_bev_pairs(boxes[j], boxes[i]) > iou_thresh  # (P,)
-    flat = boxes.new_zeros(k * k).scatter(0, j * k + i, over.to(boxes.dtype))  # (K*K,)
-    keep = suppress_fixed_point(flat.reshape(k, k) > 0)  # (K,)
+    over = torch.nonzero(iou_bev_pairs(boxes[j], boxes[i]) > iou_thresh)[:, 0]  # (S,) suppressing pairs
+    keep = suppress_fixed_point(j[over], i[over], k)  # (K,)
     return torch.nonzero(keep)[:, 0]
 
 
