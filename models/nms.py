@@ -33,6 +33,12 @@ def _cond(keep: Tensor, changed: Tensor) -> Tensor:
     return changed.clone()
 
 
+def fixed_point_round(keep: Tensor, j: Tensor, i: Tensor) -> Tensor:
+    """One round: box i is kept iff none of its suppressors j (pairs (P,), (P,)) is kept."""
+    hits = keep.new_zeros(keep.shape[0], dtype=torch.float32).index_add(0, i, keep[j].to(torch.float32))
+    return hits == 0
+
+
 def suppress_fixed_point(j: Tensor, i: Tensor, k: int) -> Tensor:
     """(k,) bool keep mask for the suppressing pairs j < i (P,), (P,) of k boxes given best first.
 
@@ -40,8 +46,7 @@ def suppress_fixed_point(j: Tensor, i: Tensor, k: int) -> Tensor:
     scatter-add over the pairs.
     """
     def body(keep: Tensor, changed: Tensor):
-        hits = keep.new_zeros(k, dtype=torch.float32).index_add(0, i, keep[j].to(torch.float32))  # (k,)
-        new = hits == 0
+        new = fixed_point_round(keep, j, i)
         return new, (new != keep).sum() > 0  # sum, not any: an empty ReduceMax is not False
 
     keep = torch.ones(k, dtype=torch.bool)
