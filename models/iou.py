@@ -4,82 +4,93 @@ The intersection of two rotated rectangles is a convex polygon whose vertices ar
 24 candidates: the 4 corners of each rectangle inside the other and the 16 edge-edge crossings.
 Valid candidates are sorted by angle around their mean and the shoelace formula gives the
 area; invalid slots are replaced by the first sorted vertex, which adds zero area. Everything
-is batched over pairs, so the cost is O(pairs) with 24 points each.
+is batched over pairs, so the cost is O(pairs) with 24 points each. x and y are separate
+tensors with the pair axis innermost: broadcasting over a trailing axis of 2 (or 4) is slow in
+onnxruntime, and this layout runs the graph's IoU about three times faster.
 """
 from __future__ import annotations
 
 import torch
 from torch import Tensor
 
-_UNIT = ((0.5, 0.5), (-0.5, 0.5), (-0.5, -0.5), (0.5, -0.5))  # CCW corner signs (l, w)
+_UNIT_X = (0.5, -0.5, -0.5, 0.5)  # CCW corner signs along l
+_UNIT_Y = (0.5, 0.5, -0.5, -0.5)  # and along w
 _EPS = 1e-6
+
+
+def corners_xy(boxes: Tensor) -> tuple[Tensor, Tensor]:
+    """x, y (4, M) of the counter-clockwise BEV corners of boxes (M, 7): the pair axis innermost."""
+    ux = torch.tensor(_UNIT_X, dtype=boxes.dtype)[:, None] * boxes[None, :, 3]  # (4, M) box frame
+    uy = torch.tensor(_UNIT_Y, dtype=boxes.dtype)[:, None] * boxes[None, :, 4]
+    c, s = torch.cos(boxes[None, :, 6]), torch.sin(boxes[None, :, 6])  # (1, M)
+    return ux * c - uy * s + boxes[None, :, 0], ux * s + uy * c + boxes[None, :, 1]
 
 
 def corners_bev(boxes: Tensor) -> Tensor:
     """(..., 4, 2) counter-clockwise BEV corners of boxes (..., 7)."""
-    unit = torch.tensor(_UNIT, dtype=boxes.dtype)  # (4, 2)
-    local = unit * boxes[..., None, 3:5]  # (..., 4, 2) box frame
-    c, s = torch.cos(boxes[..., 6:7]), torch.sin(boxes[..., 6:7])  # (..., 1)
-    x = local[..., 0] * c - local[..., 1] * s + boxes[..., 0:1]
-    y = local[..., 0] * s + local[..., 1] * c + boxes[..., 1:2]
-    return torch.stack([x, y], dim=-1)
+    x, y = corners_xy(boxes.reshape(-1, 7))
+    return torch.stack([x.t(), y.t()], dim=-1).reshape(*boxes.shape[:-1], 4, 2)
 
 
 def _next(x: Tensor) -> Tensor:
-    """x shifted by one along dim 1 (cyclic): row i holds x[:, i + 1] (torch.roll guards on
-    the size of data-dependent shapes during export; index_select does not)."""
-    n = x.shape[1]
-    return x.index_select(1, torch.tensor(list(range(1, n)) + [0]))
+    """x shifted by one along dim 0 (cyclic): row i holds x[i + 1] (torch.roll guards on the size
+    of data-dependent shapes during export; index_select does not)."""
+    n = x.shape[0]
+    return x.index_select(0, torch.tensor(list(range(1, n)) + [0]))
 
 
-def _cross(a: Tensor, b: Tensor) -> Tensor:
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+def _inside(px: Tensor, py: Tensor, qx: Tensor, qy: Tensor) -> Tensor:
+    """(P, M) bool: points (P, M) inside (or on) the CCW quads (4, M)."""
+    ex, ey = _next(qx) - qx, _next(qy) - qy  # (4, M)
+    rx, ry = px[:, None] - qx[None], py[:, None] - qy[None]  # (P, 4, M)
+    return (ex[None] * ry - ey[None] * rx >= -_EPS).all(dim=1)
 
 
-def _inside(points: Tensor, quad: Tensor) -> Tensor:
-    """(M, P) bool: points (M, P, 2) inside (or on) the CCW quads (M, 4, 2)."""
-    edge = _next(quad) - quad  # (M, 4, 2)
-    rel = points[:, :, None, :] - quad[:, None, :, :]  # (M, P, 4, 2)
-    return (_cross(edge[:, None], rel) >= -_EPS).all(dim=-1)
-
-
-def _crossings(qa: Tensor, qb: Tensor) -> tuple[Tensor, Tensor]:
-    """Edge-edge crossing points (M, 16, 2) and validity (M, 16) of quads (M, 4, 2)."""
-    p, r = qa[:, :, None, :], (_next(qa) - qa)[:, :, None, :]  # (M, 4, 1, 2)
-    q, s = qb[:, None, :, :], (_next(qb) - qb)[:, None, :, :]  # (M, 1, 4, 2)
-    denom = _cross(r, s)  # (M, 4, 4)
+def _crossings(ax: Tensor, ay: Tensor, bx: Tensor, by: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """x, y (16, M) of the edge-edge crossings of quads a, b (4, M) and their validity (16, M)."""
+    px, py = ax[:, None], ay[:, None]  # (4, 1, M): edge starts of a
+    rx, ry = (_next(ax) - ax)[:, None], (_next(ay) - ay)[:, None]
+    qx, qy = bx[None], by[None]  # (1, 4, M): of b
+    sx, sy = (_next(bx) - bx)[None], (_next(by) - by)[None]
+    denom = rx * sy - ry * sx  # (4, 4, M)
     ok = denom.abs() > _EPS
     safe = torch.where(ok, denom, torch.ones_like(denom))
-    t = _cross(q - p, s) / safe
-    u = _cross(q - p, r) / safe
+    dx, dy = qx - px, qy - py
+    t = (dx * sy - dy * sx) / safe
+    u = (dx * ry - dy * rx) / safe
     ok = ok & (t >= 0) & (t <= 1) & (u >= 0) & (u <= 1)
-    pts = p + t[..., None] * r  # (M, 4, 4, 2)
-    return pts.reshape(-1, 16, 2), ok.reshape(-1, 16)
+    m = ax.shape[1]
+    return (px + t * rx).reshape(16, m), (py + t * ry).reshape(16, m), ok.reshape(16, m)
 
 
-def _polygon_area(points: Tensor, valid: Tensor) -> Tensor:
-    """(M,) area of the convex hull-ordered valid points (M, P, 2)."""
-    w = valid.to(points.dtype)  # (M, P)
-    count = w.sum(dim=1)  # (M,)
-    centre = (points * w[..., None]).sum(dim=1) / count.clamp(min=1.0)[:, None]  # (M, 2)
-    rel = points - centre[:, None, :]
-    angle = torch.atan2(rel[..., 1], rel[..., 0])  # (M, P) in [-pi, pi]
+def _polygon_area(x: Tensor, y: Tensor, valid: Tensor) -> Tensor:
+    """(M,) area of the convex polygons of the valid points x, y (P, M), ordered by angle.
+
+    The two sums run over the points of a pair laid out as (M, P[, 2]): those are the float
+    sums the area has always had, so every IoU (and so every training target) is unchanged.
+    """
+    w = valid.to(x.dtype)  # (P, M)
+    count = w.sum(dim=0)  # (M,)
+    pts = torch.stack([x, y], dim=-1).permute(1, 0, 2).contiguous()  # (M, P, 2)
+    centre = (pts * w.t().contiguous()[..., None]).sum(dim=1) / count.clamp(min=1.0)[:, None]  # (M, 2)
+    rx, ry = x - centre[None, :, 0], y - centre[None, :, 1]  # (P, M)
+    angle = torch.atan2(ry, rx)  # (P, M) in [-pi, pi]
     angle = torch.where(valid, angle, torch.full_like(angle, 10.0))  # invalid slots last
-    order = torch.argsort(angle, dim=1)  # (M, P)
-    ordered = torch.gather(rel, 1, order[..., None].expand(-1, -1, 2))  # (M, P, 2)
-    ok = torch.gather(valid, 1, order)  # (M, P) valid first
-    ordered = torch.where(ok[..., None], ordered, ordered[:, :1, :])
-    area = 0.5 * _cross(ordered, _next(ordered)).sum(dim=1)
+    order = torch.argsort(angle, dim=0)  # (P, M)
+    ox, oy, ok = torch.gather(rx, 0, order), torch.gather(ry, 0, order), torch.gather(valid, 0, order)
+    ox, oy = torch.where(ok, ox, ox[:1]), torch.where(ok, oy, oy[:1])  # valid first, then the first again
+    area = 0.5 * (ox * _next(oy) - oy * _next(ox)).t().contiguous().sum(dim=1)  # (M,)
     return torch.where(count >= 3, area.abs(), torch.zeros_like(area))
 
 
 def intersection_bev_pairs(a: Tensor, b: Tensor) -> Tensor:
     """(M,) BEV intersection areas of paired boxes a[m], b[m] (M, 7), m^2."""
-    qa, qb = corners_bev(a), corners_bev(b)  # (M, 4, 2)
-    cross_pts, cross_ok = _crossings(qa, qb)
-    pts = torch.cat([qa, qb, cross_pts], dim=1)  # (M, 24, 2)
-    ok = torch.cat([_inside(qa, qb), _inside(qb, qa), cross_ok], dim=1)  # (M, 24)
-    return _polygon_area(pts, ok)
+    ax, ay = corners_xy(a)
+    bx, by = corners_xy(b)
+    cx, cy, cross_ok = _crossings(ax, ay, bx, by)
+    x, y = torch.cat([ax, bx, cx]), torch.cat([ay, by, cy])  # (24, M)
+    ok = torch.cat([_inside(ax, ay, bx, by), _inside(bx, by, ax, ay), cross_ok])  # (24, M)
+    return _polygon_area(x, y, ok)
 
 
 def _ratio(num: Tensor, den: Tensor) -> Tensor:
