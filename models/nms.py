@@ -70,11 +70,14 @@ def suppression_candidates(boxes: Tensor, iou_thresh: float) -> Tensor:
     (by a 10 % margin) cannot suppress each other. boxes (K, 7).
     """
     c, s = torch.cos(boxes[:, 6]).abs(), torch.sin(boxes[:, 6]).abs()  # (K,)
-    hx, hy = (boxes[:, 3] * c + boxes[:, 4] * s) / 2, (boxes[:, 3] * s + boxes[:, 4] * c) / 2  # (K,) AABB half sizes
+    hx = (boxes[:, 3] * c + boxes[:, 4] * s) / 2  # (K,) AABB half sizes, m
+    hy = (boxes[:, 3] * s + boxes[:, 4] * c) / 2
     x, y = boxes[:, 0], boxes[:, 1]
     # x and y apart, each (K, K) with K innermost: a trailing axis of 2 broadcasts slowly in a runtime
-    ex = (torch.minimum((x + hx)[:, None], (x + hx)[None]) - torch.maximum((x - hx)[:, None], (x - hx)[None])).clamp(min=0)
-    ey = (torch.minimum((y + hy)[:, None], (y + hy)[None]) - torch.maximum((y - hy)[:, None], (y - hy)[None])).clamp(min=0)
+    ex = (torch.minimum((x + hx)[:, None], (x + hx)[None])
+          - torch.maximum((x - hx)[:, None], (x - hx)[None])).clamp(min=0)
+    ey = (torch.minimum((y + hy)[:, None], (y + hy)[None])
+          - torch.maximum((y - hy)[:, None], (y - hy)[None])).clamp(min=0)
     bound = ex * ey  # (K, K) m^2, >= the rotated intersection
     area = boxes[:, 3] * boxes[:, 4]  # (K,)
     need = iou_thresh / (1 + iou_thresh) * (area[:, None] + area[None]) * _BOUND_SLACK
