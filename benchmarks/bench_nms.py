@@ -21,8 +21,7 @@ import torch
 
 from harness.dataset import KittiDataset
 from models.iou import iou_bev_pairs
-from models.nms import fixed_point_round, nms_in_order, ranked_topk, suppression_candidates
-from models.point_rcnn import decode_bins
+from models.nms import fixed_point_round, nms_in_order, suppression_candidates
 from models.zoo import load_checkpoint
 
 
@@ -36,12 +35,11 @@ class ProposalNMS(torch.nn.Module):
 
 
 def proposal_boxes(model, points: np.ndarray) -> torch.Tensor:
-    """(pre_nms, 7) decoded boxes of the best-scored points, best first (PointRCNN.propose's input)."""
+    """(pre_nms, 7) decoded boxes of the best-scored points, best first (the proposal NMS's input)."""
     with torch.no_grad():
         pts, _ = model.points_of_interest(torch.from_numpy(points))
         _, seg, box = model.stage_one(pts)
-        top = ranked_topk(torch.sigmoid(seg), model.cfg.pre_nms)
-        return decode_bins(box[top], pts[top, :3], model.cfg)
+        return model.decode_top(pts, seg, box)[2]
 
 
 def rounds(j: torch.Tensor, i: torch.Tensor, k: int) -> int:
@@ -101,12 +99,13 @@ def main(argv=None) -> int:
             raise SystemExit(f"frame {n}: onnxruntime keeps other boxes than torch")
         t_cand = timed(lambda: torch.nonzero(suppression_candidates(boxes, thresh), as_tuple=True))
         t_iou = timed(lambda: iou_bev_pairs(boxes[j], boxes[i]) > thresh)
+        n_rounds = rounds(js, is_, kk)
         t_fix = timed(lambda: rounds(js, is_, kk))
         t_all = timed(lambda: nms_in_order(boxes, thresh))
         t_ort = timed(lambda: sess.run(None, {"boxes": boxes.numpy()}))
         eager_ms.append(t_all)
         ort_ms.append(t_ort)
-        print(f"| {n} | {kk} | {len(j)} | {len(js)} | {rounds(js, is_, kk)} | {len(kept)} | {t_cand:.1f} | "
+        print(f"| {n} | {kk} | {len(j)} | {len(js)} | {n_rounds} | {len(kept)} | {t_cand:.1f} | "
               f"{t_iou:.1f} | {t_fix:.1f} | {t_all:.1f} | {t_ort:.1f} |")
     print(f"median: eager {np.median(eager_ms):.1f} ms, onnxruntime {np.median(ort_ms):.1f} ms")
     return 0

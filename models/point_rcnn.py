@@ -318,14 +318,19 @@ class PointRCNN(Detector):
         feats = self.backbone(pts[:, :3], pts[:, 3:4])
         return feats, self.seg_head(feats)[:, 0], self.box_head(feats)
 
+    def decode_top(self, pts: Tensor, seg: Tensor, box: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """The points' scores (n0,), the pre_nms best of them (T,) best first, their boxes (T, 7):
+        what the proposal NMS takes."""
+        scores = torch.sigmoid(seg)  # (n0,)
+        top = ranked_topk(scores, self.cfg.pre_nms)  # (T,) best first
+        return scores, top, decode_bins(box[top], pts[top, :3], self.cfg)
+
     def propose(self, pts: Tensor, seg: Tensor, box: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """Decode the top pre_nms points, BEV NMS -> rois (R, 7), roi_scores (R,), valid (R,).
 
         R = cfg.rois always: the K <= R proposals that survive NMS come first, then zero rows.
         """
-        scores = torch.sigmoid(seg)  # (n0,)
-        top = ranked_topk(scores, self.cfg.pre_nms)  # (T,) best first
-        boxes = decode_bins(box[top], pts[top, :3], self.cfg)  # (T, 7)
+        scores, top, boxes = self.decode_top(pts, seg, box)
         keep = nms_in_order(boxes, self.cfg.proposal_nms_iou)  # (K,)
         slot = torch.cat([keep, keep.new_zeros(self.cfg.rois)])[: self.cfg.rois]  # (R,)
         valid = torch.arange(self.cfg.rois, device=seg.device) < keep.shape[0]  # (R,)
