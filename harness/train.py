@@ -62,12 +62,12 @@ TRAIN_CONFIGS = {"tiny": TrainConfig(epochs=2, batch_size=2, lr=3e-3),
 # PV-RCNN 6 and Part-A2 8 from the run's SECOND (``run`` warm-starts them; PV-RCNN at SECOND's 0.2 m
 # voxels from a 6-epoch SECOND: 93.2, cold at 0.4 m after 8: 68.1, after 16: 78.8; Part-A2 at 12:
 # val 88.2 against 83.2, but SOTIF headline 74.0 -> 71.0 with its proposals alone at 76.5, its second
-# stage no longer refining); PointRCNN 12 (8: 7.6, still rising: 0, 0, 0, 3.0, 2.3, 12.8, 9.4, 14.9 on
-# the per-epoch frames; 24 on current data: 20.5 against 29.9 at 12); MVX-Net 6
+# stage no longer refining); PointRCNN 20 (at its 1,024 decoded points, seeds 0 / 1: 12 epochs 67.8 /
+# 46.9, still rising on the per-epoch frames; 20 epochs 72.8 / 71.4); MVX-Net 6
 # from the run's DV-SECOND (cold: 31.3; warm at the peak rate 3e-3: 69.4, its per-epoch AP falling
 # from 58.9 to 4.6 in epoch 2 as the rate peaks, hence ``WARM_LR``).
 COMPACT_EPOCHS = {"pointpillars": 30, "second": 12, "dv_second": 12, "parta2": 8, "pv_rcnn": 6,
-                  "point_rcnn": 12, "mvx_net": 6}
+                  "point_rcnn": 20, "mvx_net": 6}
 
 # The peak learning rate of a warm-started training (``init_from``) where it differs from the
 # profile's: MVX-Net's trained LiDAR network beside an untrained image branch (at 1e-3 its
