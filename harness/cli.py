@@ -262,7 +262,7 @@ def _add_run(sub, quiet) -> None:
     s = sub.add_parser("run", parents=[quiet],
                        help="the whole benchmark: simulate, train, export, predict, evaluate, report")
     s.add_argument("--profile", choices=["quick", "default", "full"], default="default",
-                   help="quick: a smoke run in minutes; default: compact models on 2 CPU cores (75-110 min); "
+                   help="quick: a smoke run in minutes; default: compact models on 2 CPU cores (65-110 min); "
                         "full: the references' settings (GPU)")
     s.add_argument("--models", help="comma-separated model names (default: all available)")
     s.add_argument("--out", help="run directory (default reports/<profile>)")

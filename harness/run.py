@@ -108,12 +108,11 @@ PROFILES = {
                       warm_start=False),
 }
 
-# Minutes of each model's jobs in the sample run (docs/performance.md, its stage table's totals; SECOND
-# and DV-SECOND, which ran beside a third process for 5 of their 12 epochs, as on an idle machine): the
+# Minutes of each model's jobs in the sample run (docs/performance.md, its stage table's totals): the
 # job pool starts the longest first, so that the jobs end together, and the ETA a run prints scales
 # them by the share of each job still to do.
-_SAMPLE_MINUTES = {"mvx_net": 21, "point_rcnn": 26, "pointpillars": 26, "pv_rcnn": 26, "second": 28, "dv_second": 28,
-                   "parta2": 25}
+_SAMPLE_MINUTES = {"mvx_net": 15, "point_rcnn": 33, "pointpillars": 15, "pv_rcnn": 15, "second": 15, "dv_second": 16,
+                   "parta2": 18}
 
 
 def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
