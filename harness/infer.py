@@ -433,11 +433,14 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
             if (out / f"{fid}.txt").is_file():
                 continue
             points, calib, image, l2i, hw = _frame_inputs(det, data, fid)
-            if not ran:
-                det(points, image, l2i)  # warm-up: first-run allocations are not latency
-            t0 = time.perf_counter()
-            res = det(points, image, l2i)
-            ms = 1000 * (time.perf_counter() - t0)
+            try:
+                if not ran:
+                    det(points, image, l2i)  # warm-up: first-run allocations are not latency
+                t0 = time.perf_counter()
+                res = det(points, image, l2i)
+                ms = 1000 * (time.perf_counter() - t0)
+            except ValueError as e:  # the model failed on this frame: name the frame's scan as well
+                raise ValueError(f"{e} (frame {fid}: {frame_path(data, 'velodyne', fid)})") from e
             if det.info.two_stage:
                 write_labels(out / "rois" / f"{fid}.txt", boxes_to_results(res["rois"], res["roi_scores"], calib, hw))
                 if "rcnn_boxes" in res:

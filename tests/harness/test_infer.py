@@ -155,6 +155,17 @@ def test_predict_writes_kitti_results_and_resumes(make_onnx, tmp_path, dataset):
     assert [r for r in rows if r.startswith("000003")] != [r for r in first if r.startswith("000003")]  # timed again
 
 
+def test_predict_names_the_frame_a_model_fails_on_and_keeps_the_frames_before(make_onnx, tmp_path, dataset):
+    scan = kitti.frame_path(dataset, "velodyne", "000002")
+    pts = kitti.read_points(scan)
+    pts[:2, 0] = 3e38  # finite, so the reader takes it; their mean overflows to inf in the graph
+    pts.tofile(scan)
+    out = tmp_path / "pred"
+    with pytest.raises(ValueError, match=r"c\.onnx: output 'boxes' contains NaN or inf \(frame 000002: .*000002\.bin\)"):
+        predict(make_onnx(tmp_path / "c.onnx"), dataset, out, progress=False)
+    assert sorted(f.name for f in out.glob("*.txt")) == ["000000.txt", "000001.txt"]
+
+
 def test_predict_into_a_folder_of_other_results(make_onnx, tmp_path, dataset):
     """Results of another data set are replaced, never reused; result files no earlier predict
     recorded are refused and left alone; files of other names stay."""
