@@ -24,7 +24,7 @@ import torch
 from torch import nn
 
 from harness.dataset import KittiDataset
-from harness.train import validation_ap
+from harness.train import eager_inputs, validation_ap
 from models.zoo import load_checkpoint
 
 # the first-stage modules of the two-stage models (their RoI heads are the other top-level modules)
@@ -58,12 +58,8 @@ def recompute_bn_stats(net: nn.Module, inputs, layers: list[nn.modules.batchnorm
 
 
 def frame_inputs(ds: KittiDataset, n: int, camera: bool):
-    for i in range(min(n, len(ds))):
-        s = ds[i]
-        args = [torch.as_tensor(s.points)]
-        if camera:
-            args += [torch.as_tensor(s.image[None]), torch.as_tensor(s.lidar2img)]
-        yield args
+    """The eager model's arguments for the first ``n`` frames of ``ds``."""
+    return (eager_inputs(ds[i], camera) for i in range(min(n, len(ds))))
 
 
 def main(argv=None) -> int:

@@ -224,6 +224,15 @@ def _data_parallel_backward(net, samples: list, batch_frames: int) -> float:
     return float(flat[-1])
 
 
+def eager_inputs(sample, camera: bool, device="cpu") -> list[torch.Tensor]:
+    """A dataset sample as the eager model's arguments: points, and for a camera model the image
+    batch of one and lidar2img."""
+    inputs = [torch.as_tensor(sample.points, device=device)]
+    if camera:
+        inputs += [torch.as_tensor(sample.image[None], device=device), torch.as_tensor(sample.lidar2img, device=device)]
+    return inputs
+
+
 def validation_ap(net, data: Path, max_frames: int | None = None) -> dict:
     """AP40 (3D / BEV, IoU 0.7) of the eager model on the ``val`` split with the project's KITTI
     evaluator: KITTI moderate and the headline (all distances, height filter off)."""
@@ -238,12 +247,7 @@ def validation_ap(net, data: Path, max_frames: int | None = None) -> dict:
     device = next(net.parameters()).device
     with torch.no_grad():
         for i in range(n):
-            sample = ds[i]
-            inputs = [torch.as_tensor(sample.points, device=device)]
-            if net.uses_camera:
-                inputs += [torch.as_tensor(sample.image[None], device=device),
-                           torch.as_tensor(sample.lidar2img, device=device)]
-            out = net(*inputs)
+            out = net(*eager_inputs(ds[i], net.uses_camera, device))
             calib = ds.calib(i)
             gt.append(ds.labels(i))
             dt.append(boxes_to_results(out[0].cpu().numpy(), out[1].cpu().numpy(), calib, (375, 1242)))

@@ -47,7 +47,7 @@ def test_recomputed_statistics_are_the_plain_average_of_the_batches():
         np.testing.assert_allclose(bn.running_var.numpy(), var, rtol=1e-4, atol=1e-5)
 
 
-def test_layers_left_out_keep_their_statistics_and_normalise_with_them():
+def test_layers_left_out_keep_their_statistics_and_count_no_batch():
     torch.manual_seed(1)
     net = Tiny()
     head = net.head[1]
