@@ -8,23 +8,28 @@ re-estimates them with the weights frozen: the plain average over N training fra
 frames run through the model in inference mode (the proposals the exported graph makes, no
 labels), with only the BatchNorm layers collecting statistics. ``--first-stage`` leaves the
 layers of a two-stage model's RoI head as trained (their statistics are of sampled training
-RoIs, the distribution the head's weights were fitted to).
+RoIs, the distribution the head's weights were fitted to). ``--augment`` feeds the frames as
+training sees them: flipped, rotated and scaled, with pasted ground-truth objects for the LiDAR-only
+models (the statistics training itself averages), instead of as they were recorded.
 
 Prints val AP40 (3D / BEV moderate, IoU 0.7, the run's 45 val frames) before and after, per
 model. Nothing is written: a measurement, not a change of the run's checkpoints.
 
-    python -m benchmarks.precise_bn RUN_DIR [--models a,b] [--frames 60] [--first-stage]
+    python -m benchmarks.precise_bn RUN_DIR [--models a,b] [--frames 60] [--first-stage] [--augment]
 """
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
+import numpy as np
 import torch
 from torch import nn
 
+from harness.augment import AugmentConfig, augment
 from harness.dataset import KittiDataset
-from harness.train import eager_inputs, validation_ap
+from harness.gt_database import load_or_build
+from harness.train import eager_inputs, uses_gt_sampling, validation_ap
 from models.zoo import load_checkpoint
 
 # the first-stage modules of the two-stage models (their RoI heads are the other top-level modules)
@@ -57,9 +62,13 @@ def recompute_bn_stats(net: nn.Module, inputs, layers: list[nn.modules.batchnorm
     return calls
 
 
-def frame_inputs(ds: KittiDataset, n: int, camera: bool):
-    """The eager model's arguments for the first ``n`` frames of ``ds``."""
-    return (eager_inputs(ds[i], camera) for i in range(min(n, len(ds))))
+def frame_inputs(ds: KittiDataset, n: int, camera: bool, aug: AugmentConfig | None = None, database=None,
+                 seed: int = 0):
+    """The eager model's arguments for the first ``n`` frames of ``ds``; with ``aug``, each frame
+    augmented as in training (its own generator, ``[seed, i]``; ``database``: objects to paste)."""
+    for i in range(min(n, len(ds))):
+        sample = ds[i] if aug is None else augment(ds[i], np.random.default_rng([seed, i]), aug, database)
+        yield eager_inputs(sample, camera)
 
 
 def main(argv=None) -> int:
@@ -68,10 +77,12 @@ def main(argv=None) -> int:
     p.add_argument("--models", default="pointpillars,second,dv_second,parta2,pv_rcnn,point_rcnn,mvx_net")
     p.add_argument("--frames", type=int, default=60, help="training frames to average over")
     p.add_argument("--first-stage", action="store_true", help="two-stage models: the first stage's layers only")
+    p.add_argument("--augment", action="store_true", help="the frames augmented as in training (pasting included "
+                   "for LiDAR-only models)")
     args = p.parse_args(argv)
     data = args.run / "data" / "train"
     print(f"val AP40 @0.7 moderate ({data}, val split) before -> after re-estimating BatchNorm statistics "
-          f"on {args.frames} training frames")
+          f"on {args.frames} {'augmented ' if args.augment else ''}training frames")
     print("| model | BatchNorm layers | 3D | BEV | 3D all distances |")
     print("|---|---|---|---|---|")
     for name in args.models.split(","):
@@ -79,8 +90,11 @@ def main(argv=None) -> int:
         before = validation_ap(net, data)
         layers = batch_norms(net, FIRST_STAGE.get(name) if args.first_stage else None)
         camera = getattr(net, "uses_camera", False)
-        recompute_bn_stats(net, frame_inputs(KittiDataset(data, "train", with_image=camera), args.frames, camera),
-                           layers)
+        aug = AugmentConfig() if args.augment else None
+        database = (load_or_build(data, data / "gt_database", aug.gt_sampling)
+                    if aug is not None and uses_gt_sampling(net, aug) else None)
+        frames = frame_inputs(KittiDataset(data, "train", with_image=camera), args.frames, camera, aug, database)
+        recompute_bn_stats(net, frames, layers)
         after = validation_ap(net, data)
         cells = " | ".join(f"{before[k]:.1f} -> {after[k]:.1f}" for k in ("3d_moderate", "bev_moderate", "3d_all"))
         print(f"| {name} | {len(layers)} | {cells} |", flush=True)

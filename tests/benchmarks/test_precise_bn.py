@@ -62,3 +62,22 @@ def test_layers_left_out_keep_their_statistics_and_count_no_batch():
     np.testing.assert_allclose(net.first[1].running_mean.detach().numpy(), h1.mean(0).detach().numpy(), atol=1e-6)
     # left in eval mode during the pass: no batch counted
     assert head.num_batches_tracked.item() == 0 and net.first[1].num_batches_tracked.item() == 1
+
+
+def test_augmented_frames_are_the_training_draws_of_their_index(tmp_path):
+    from benchmarks.precise_bn import frame_inputs
+    from harness.augment import AugmentConfig, augment
+    from harness.dataset import KittiDataset, write_synthetic_dataset
+    data = write_synthetic_dataset(tmp_path / "data", frames=3, seed=2)
+    ds = KittiDataset(data, "train")
+    plain = [args[0].numpy() for args in frame_inputs(ds, 5, camera=False)]
+    assert len(plain) == 3 and all(np.array_equal(p, ds[i].points) for i, p in enumerate(plain))
+    aug = AugmentConfig(flip_y=False, rotation=0.5)
+    moved = [args[0].numpy() for args in frame_inputs(ds, 2, camera=False, aug=aug, seed=4)]
+    for i, points in enumerate(moved):
+        expected = augment(ds[i], np.random.default_rng([4, i]), aug).points
+        np.testing.assert_array_equal(points, expected)
+        assert not np.allclose(points[:, :2], ds[i].points[:, :2])  # rotated about z
+        np.testing.assert_allclose(np.linalg.norm(points[:, :2], axis=1) / np.linalg.norm(ds[i].points[:, :2], axis=1),
+                                   np.full(len(points), np.linalg.norm(points[0, :2]) / np.linalg.norm(ds[i].points[0, :2])),
+                                   rtol=1e-5)  # one global scale factor
