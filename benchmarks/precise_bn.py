@@ -1,8 +1,9 @@
 """How much of a trained model's val AP its BatchNorm running statistics cost.
 
-Training keeps each BatchNorm's running mean and variance as an exponential average (momentum
-0.1) of per-batch statistics; with batch 2 and weights still moving, the average reflects the
-last few batches of a network that has since changed. "Precise BN" (Wu & Johnson, "Rethinking
+Frames run one by one through every model, so each BatchNorm call normalises one frame, and
+training keeps the running mean and variance as an exponential average over frames (momentum 0.01
+in the voxel networks, 0.1 in the PointNet++ layers and RoI heads, which then follow the last ten
+or so frames of weights that have since moved). "Precise BN" (Wu & Johnson, "Rethinking
 'Batch' in BatchNorm", 2021; fvcore's ``update_bn_stats``, torch's ``swa_utils.update_bn``)
 re-estimates them with the weights frozen: the plain average over N training frames. Here the
 frames run through the model in inference mode (the proposals the exported graph makes, no
