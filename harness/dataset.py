@@ -49,7 +49,9 @@ class KittiDataset:
         boxes = labels.to_lidar(calib) if len(labels) else np.zeros((0, 7), np.float32)
         image = lidar2img = None
         if self.with_image:
-            rgb = kitti.read_image(kitti.frame_path(self.root, "image_2", fid))  # (H, W, 3) uint8
+            image_path = kitti.frame_path(self.root, "image_2", fid)
+            rgb = kitti.read_image(image_path)  # (H, W, 3) uint8
+            kitti.check_image_fits_calib(image_path, rgb.shape[:2], calib, kitti.frame_path(self.root, "calib", fid))
             image = np.ascontiguousarray(rgb.transpose(2, 0, 1), dtype=np.float32) / 255.0
             lidar2img = calib.lidar2img().astype(np.float32)
         return Sample(fid, points, boxes, np.asarray(labels.name, dtype=str), image, lidar2img)

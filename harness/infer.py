@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from harness.kitti import (Labels, atomic_write_text, folder_lock, frame_path, read_calib, read_image, read_image_set,
-                           read_points, write_labels)
+from harness.kitti import (Labels, atomic_write_text, check_image_fits_calib, folder_lock, frame_path, image_size,
+                           read_calib, read_image, read_image_set, read_points, write_labels)
 
 CONTRACT_VERSION = "1"
 REQUIRED_OUTPUTS = ("boxes", "scores")
@@ -337,13 +337,13 @@ def _frame_inputs(det: OnnxDetector, root: Path, fid: str):
         if det.info.uses_camera:
             rgb = read_image(img_path)
             hw = rgb.shape[:2]
+        else:  # the image's size only: the camera's view the results are kept in
+            hw = image_size(img_path)
+        check_image_fits_calib(img_path, hw, calib, frame_path(root, "calib", fid))
+        if det.info.uses_camera:
             size = det.info.image_size()
             image = image_input(rgb, size)
             l2i = scale_lidar2img(calib.lidar2img(), hw, size or hw)
-        else:
-            from PIL import Image
-            with Image.open(img_path) as im:
-                hw = (im.height, im.width)
     return points, calib, image, l2i, hw
 
 

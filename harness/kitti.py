@@ -247,6 +247,11 @@ def read_calib(path) -> Calib:
     missing = [k for k in _CALIB_REQUIRED if k not in values]
     if missing:
         raise KittiError(path, f"missing calib key(s) {', '.join(missing)}")
+    for key in _CALIB_REQUIRED:  # each must map 3D points one to one (rotation / intrinsics part)
+        rank = int(np.linalg.matrix_rank(values[key][:, :3]))
+        if rank < 3:
+            raise KittiError(path, f"{key}: singular (its 3x3 part has rank {rank}), so it maps points onto a "
+                                   f"{'plane' if rank == 2 else 'line or point'}")
     return Calib(**values)
 
 
@@ -403,6 +408,30 @@ def read_image(path) -> np.ndarray:
         raise KittiError(path, "file not found") from None
     except (OSError, SyntaxError) as e:
         raise KittiError(path, f"not a readable image ({e})") from None
+
+
+def image_size(path) -> tuple[int, int]:
+    """(H, W) of an image file, read from its header."""
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            return im.height, im.width
+    except FileNotFoundError:
+        raise KittiError(path, "file not found") from None
+    except (OSError, SyntaxError) as e:
+        raise KittiError(path, f"not a readable image ({e})") from None
+
+
+def check_image_fits_calib(path, hw: tuple[int, int], calib: "Calib", calib_path) -> None:
+    """Refuse an image that cannot be the one ``calib``'s P2 describes: its principal point must
+    lie inside the picture (KITTI: (609.6, 172.9) in 1242 x 375)."""
+    m = calib.P2[:, :3]
+    u, v, s = m @ m[2]  # the principal point: the image of the optical axis (Hartley & Zisserman 6.2.2)
+    cx, cy = u / s, v / s
+    h, w = hw
+    if not (0 <= cx <= w and 0 <= cy <= h):
+        raise KittiError(path, f"the image is {w} x {h} pixels, but {calib_path}'s P2 puts the principal point at "
+                               f"({cx:.1f}, {cy:.1f}), outside it: the image and the calibration do not belong together")
 
 
 def write_image(path, rgb: np.ndarray) -> Path:

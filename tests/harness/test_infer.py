@@ -166,6 +166,21 @@ def test_predict_names_the_frame_a_model_fails_on_and_keeps_the_frames_before(ma
     assert sorted(f.name for f in out.glob("*.txt")) == ["000000.txt", "000001.txt"]
 
 
+def test_predict_refuses_a_frame_image_that_is_no_image_or_not_the_calibrated_one(make_onnx, tmp_path, dataset):
+    """A LiDAR-only model reads the image's size only (the camera view results are kept in): a file
+    that is no image, or an image the calibration cannot belong to, is an error naming it, never a
+    frame of silently dropped boxes."""
+    image = kitti.frame_path(dataset, "image_2", "000002")
+    image.write_text("not an image")
+    onnx_path = make_onnx(tmp_path / "c.onnx")
+    with pytest.raises(ValueError, match=r"000002\.png: not a readable image"):
+        predict(onnx_path, dataset, tmp_path / "a", progress=False)
+    kitti.write_image(image, np.zeros((20, 50, 3), np.uint8))
+    with pytest.raises(ValueError, match=r"000002\.png: the image is 50 x 20 pixels, but .*000002\.txt's P2"):
+        predict(onnx_path, dataset, tmp_path / "b", progress=False)
+    assert sorted(f.name for f in (tmp_path / "b").glob("*.txt")) == ["000000.txt", "000001.txt"]
+
+
 def test_predict_into_a_folder_of_other_results(make_onnx, tmp_path, dataset):
     """Results of another data set are replaced, never reused; result files no earlier predict
     recorded are refused and left alone; files of other names stay."""

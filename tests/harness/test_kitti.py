@@ -52,6 +52,35 @@ def test_calib_errors(tmp_path):
         kitti.read_calib(tmp_path / "short.txt")
 
 
+@pytest.mark.parametrize("key,rank", [("P2", 0), ("R0_rect", 2), ("Tr_velo_to_cam", 0)])
+def test_a_singular_calibration_is_refused_naming_the_matrix(tmp_path, key, rank):
+    calib = kitti.kitti_calib()
+    m = np.array(getattr(calib, key), dtype=np.float64)
+    if rank == 0:
+        m[:] = 0
+    else:
+        m[2] = m[0] + m[1]  # a row the others span
+    assert np.linalg.matrix_rank(m[:, :3]) == rank  # the reference: numpy's SVD rank
+    kitti.write_calib(tmp_path / "c.txt", kitti.Calib(**{**calib.__dict__, key: m}))
+    with pytest.raises(KittiError, match=rf"c\.txt: {key}: singular \(its 3x3 part has rank {rank}\)"):
+        kitti.read_calib(tmp_path / "c.txt")
+
+
+def test_an_image_must_hold_its_calibrations_principal_point(tmp_path):
+    calib = kitti.kitti_calib()
+    u, v, w = calib.P2 @ np.array([0.0, 0.0, 1.0, 0.0])  # the optical axis' vanishing point, by hand
+    assert 0 < u / w < 1242 and 0 < v / w < 375
+    kitti.check_image_fits_calib("i.png", (375, 1242), calib, "c.txt")
+    with pytest.raises(KittiError, match=r"i\.png: the image is 50 x 20 pixels, but c\.txt's P2 puts the principal "
+                                         r"point at \(\d+\.\d, \d+\.\d\), outside it"):
+        kitti.check_image_fits_calib("i.png", (20, 50), calib, "c.txt")
+    (tmp_path / "x.png").write_text("not an image")
+    with pytest.raises(KittiError, match=r"x\.png: not a readable image"):
+        kitti.image_size(tmp_path / "x.png")
+    kitti.write_image(tmp_path / "ok.png", np.zeros((20, 50, 3), np.uint8))
+    assert kitti.image_size(tmp_path / "ok.png") == (20, 50)
+
+
 def test_labels_lidar_camera_round_trip(tmp_path):
     rng = np.random.default_rng(1)
     boxes = np.c_[rng.uniform(5, 60, (20, 1)), rng.uniform(-10, 10, (20, 1)), rng.uniform(-1.5, -0.5, (20, 1)),
