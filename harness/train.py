@@ -178,6 +178,11 @@ def _run_epoch(net, ds, optimizer, scheduler, tcfg: TrainConfig, seed: int, epoc
                 value = float(loss.detach())
             else:
                 value = _data_parallel_backward(net, samples, len(batches[step]))
+            if not math.isfinite(value):  # before the step: the weights stay those of the last good one
+                frames = ", ".join(ds.frame_ids[int(i)] for i in batches[step])
+                raise ValueError(f"{ds.root}: the training loss is {value} at epoch {epoch + 1}, step {step + 1} "
+                                 f"(frames {frames}): the weights diverged or these frames hold values the network "
+                                 "cannot take; the checkpoint of the last finished epoch is kept")
             torch.nn.utils.clip_grad_norm_(net.parameters(), tcfg.grad_clip)
             optimizer.step()
             scheduler.step()

@@ -145,6 +145,18 @@ def detector_class(name: str) -> type:
                 and c.__dict__.get("architecture") == name)
 
 
+def _refuse_non_finite(path: Path, state_dict) -> None:
+    """A checkpoint whose weights hold NaN or inf (a diverged training) is refused: every box of
+    such a network is NaN, or none is made."""
+    if not isinstance(state_dict, dict):
+        raise CheckpointError(f"{path}: state_dict is a {type(state_dict).__name__}, not a mapping of tensors")
+    bad = [n for n, t in state_dict.items()
+           if isinstance(t, torch.Tensor) and t.is_floating_point() and not torch.isfinite(t).all()]
+    if bad:
+        raise CheckpointError(f"{path}: {len(bad)} of its {len(state_dict)} tensors hold NaN or inf (first: {bad[0]}); "
+                              "the training that wrote it diverged")
+
+
 def load_checkpoint(path) -> tuple[Detector, dict]:
     """(model in eval mode, metadata) from a checkpoint file, built with the config it was
     trained with (module docstring)."""
@@ -165,7 +177,12 @@ def load_checkpoint(path) -> tuple[Detector, dict]:
             raise CheckpointError(f"{path}: its {ckpt['model']}/{ckpt['profile']} config does not fit this "
                                   f"code ({exc}); it was trained by another version") from None
     changed = config_changes(current, trained)
-    model = detector_class(ckpt["model"])(trained)
+    try:
+        model = detector_class(ckpt["model"])(trained)
+    except (ValueError, TypeError, RuntimeError, ZeroDivisionError) as exc:  # a config no training writes
+        raise CheckpointError(f"{path}: its {ckpt['model']}/{ckpt['profile']} config does not build the network "
+                              f"({str(exc).splitlines()[0][:200]})") from None
+    _refuse_non_finite(path, ckpt["state_dict"])
     try:
         model.load_state_dict(ckpt["state_dict"])
     except RuntimeError as exc:
@@ -206,6 +223,7 @@ def warm_start(net: torch.nn.Module, model: str, path) -> tuple[list[str], list[
     if "state_dict" not in ckpt:
         raise CheckpointError(f"{path}: checkpoint lacks state_dict")
     source = ckpt["state_dict"]
+    _refuse_non_finite(path, source)
     own = net.state_dict()
     take, loaded, kept = {}, [], []
     for name, tensor in own.items():

@@ -54,6 +54,21 @@ def test_compact_schedule_is_per_model_and_other_profiles_are_shared():
         train_config("second", "huge")
 
 
+def test_a_training_whose_loss_turns_nan_stops_naming_the_step_and_keeps_the_last_epoch(tmp_path, monkeypatch):
+    from models.pointpillars import PointPillars
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=5)
+    train_stopped_after_epoch_1(monkeypatch, "pointpillars", data, tmp_path / "run", profile="tiny", seed=0,
+                                progress=False)
+    ckpt = tmp_path / "run" / "checkpoint.pt"
+    before = torch.load(ckpt, weights_only=False)
+    loss = PointPillars.loss
+    monkeypatch.setattr(PointPillars, "loss", lambda self, samples: {"loss": loss(self, samples)["loss"] * float("nan")})
+    with pytest.raises(ValueError, match=r"data: the training loss is nan at epoch 2, step 1 \(frames \d{6}, \d{6}\)"):
+        train("pointpillars", data, tmp_path / "run", profile="tiny", seed=0, progress=False)
+    after = torch.load(ckpt, weights_only=False)
+    assert after["epoch"] == 1 and all(torch.equal(after["state_dict"][k], v) for k, v in before["state_dict"].items())
+
+
 def train_stopped_after_epoch_1(monkeypatch, *args, **kwargs) -> None:
     """``train(*args, **kwargs)`` interrupted as its second epoch begins (its checkpoint holds epoch 1)."""
     import harness.train as train_mod

@@ -45,6 +45,23 @@ def test_load_checkpoint_roundtrip_and_errors(tmp_path):
         zoo.load_checkpoint(tmp_path / "x.pt")
 
 
+def test_weights_with_nan_or_inf_and_configs_that_build_no_network_are_refused(tmp_path):
+    import dataclasses
+    state = zoo.build("pointpillars", "tiny").state_dict()
+    name = next(n for n, t in state.items() if t.is_floating_point() and t.numel() > 1)
+    bad = {**state, name: state[name].clone().index_fill_(0, torch.tensor([0]), float("nan"))}
+    torch.save({"model": "pointpillars", "profile": "tiny", "state_dict": bad}, tmp_path / "nan.pt")
+    message = rf"nan\.pt: 1 of its {len(state)} tensors hold NaN or inf \(first: {name}\); the training that wrote it diverged"
+    with pytest.raises(zoo.CheckpointError, match=message):
+        zoo.load_checkpoint(tmp_path / "nan.pt")
+    with pytest.raises(zoo.CheckpointError, match=message):  # nor does it start another training
+        zoo.warm_start(zoo.build("pointpillars", "tiny"), "pointpillars", tmp_path / "nan.pt")
+    cfg = dataclasses.asdict(zoo.config("pointpillars", "tiny")) | {"voxel_size": (-0.5, 0.5, 4.0)}
+    torch.save({"model": "pointpillars", "profile": "tiny", "config": cfg, "state_dict": state}, tmp_path / "cfg.pt")
+    with pytest.raises(zoo.CheckpointError, match=r"cfg\.pt: its pointpillars/tiny config does not build the network"):
+        zoo.load_checkpoint(tmp_path / "cfg.pt")
+
+
 @pytest.mark.parametrize("name", zoo.MODEL_NAMES)
 def test_config_from_dict_rebuilds_every_profile_exactly(name, tmp_path):
     import dataclasses
