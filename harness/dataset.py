@@ -57,8 +57,12 @@ class KittiDataset:
         return Sample(fid, points, boxes, np.asarray(labels.name, dtype=str), image, lidar2img)
 
     def labels(self, i: int, calib: kitti.Calib | None = None) -> kitti.Labels:
-        """Ground-truth labels of frame i (camera frame, as on disk)."""
-        return kitti.read_labels(kitti.frame_path(self.root, "label_2", self.frame_ids[i]))
+        """Ground-truth labels of frame i (camera frame, as on disk), checked as ``evaluate`` checks them."""
+        from harness.evaluate import check_ground_truth
+        path = kitti.frame_path(self.root, "label_2", self.frame_ids[i])
+        labels = kitti.read_labels(path)
+        check_ground_truth(path, labels)
+        return labels
 
     def calib(self, i: int) -> kitti.Calib:
         return kitti.read_calib(kitti.frame_path(self.root, "calib", self.frame_ids[i]))

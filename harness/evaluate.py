@@ -70,6 +70,8 @@ def load_folder(folder: Path, ids, with_score: bool) -> list[Labels]:
         labels = read_labels(p, with_score=None)
         if not with_score:
             check_ground_truth(p, labels)
+        else:
+            check_results(p, labels)
         if with_score and labels.score is None:  # as the reference: a result without scores scores 0
             scoreless += len(labels) > 0
             labels.score = np.zeros(len(labels))
@@ -104,6 +106,18 @@ def check_ground_truth(path: Path, labels: Labels) -> None:
         bad = np.flatnonzero(care & ~ok(labels))
         if len(bad):
             raise KittiError(path, f"{rule}, got {values(labels, bad[0])}", lines[bad[0]])
+
+
+def check_results(path: Path, labels: Labels) -> None:
+    """Refuse (KittiError naming the line) a result box with a size <= 0: its IoU with anything is
+    not an overlap."""
+    if not len(labels):
+        return
+    bad = np.flatnonzero(~(labels.dimensions > 0).all(axis=1))
+    if len(bad):
+        lines = [no for no, line in enumerate(Path(path).read_text().splitlines(), start=1) if line.strip()]
+        raise KittiError(path, f"box sizes (h w l) must be > 0, got {' '.join(f'{v:g}' for v in labels.dimensions[bad[0]])}",
+                         lines[bad[0]])
 
 
 def recall_at_iou(gt: list[Labels], boxes: list[Labels], thresholds=RECALL_THRESHOLDS, frames=None) -> dict:

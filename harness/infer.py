@@ -301,6 +301,10 @@ class OnnxDetector:
                                  or len(out[scores]) != len(out[boxes])):
                 raise ValueError(f"{self.info.path}: outputs '{boxes}' {list(out[boxes].shape)} and '{scores}' "
                                  f"{list(out[scores].shape)} are not [M, 7] and [M] with the same M")
+            if boxes in out and (out[boxes][:, 3:6] <= 0).any():
+                i = int(np.flatnonzero((out[boxes][:, 3:6] <= 0).any(axis=1))[0])
+                raise ValueError(f"{self.info.path}: output '{boxes}' has a box with a size <= 0 (box {i}: l w h "
+                                 f"{' '.join(f'{v:g}' for v in out[boxes][i, 3:6])})")
         return out
 
 

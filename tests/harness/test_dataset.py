@@ -32,3 +32,15 @@ def test_dataset_reads_samples_like_the_writer(tmp_path):
 def test_missing_folder_is_a_clear_error(tmp_path):
     with pytest.raises(kitti.KittiError, match="not found"):
         KittiDataset(tmp_path / "nowhere", "train")
+
+
+def test_training_labels_are_checked_as_evaluate_checks_them(tmp_path):
+    root = write_synthetic_dataset(tmp_path / "d", frames=2, seed=2)
+    path = kitti.frame_path(root, "label_2", "000001")
+    fields = path.read_text().splitlines()[0].split()
+    fields[10] = "-3.9"  # l
+    path.write_text(" ".join(fields) + "\n")
+    ds = KittiDataset(root, "train")
+    assert len(ds[0].gt_boxes) == 3
+    with pytest.raises(kitti.KittiError, match=r"000001\.txt:1: box sizes \(h w l\) must be > 0, got [\d.]+ [\d.]+ -3\.9"):
+        ds[1]

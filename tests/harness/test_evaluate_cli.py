@@ -208,3 +208,14 @@ def test_evaluate_refuses_nonsense_labels_and_notes_swapped_folders(tmp_path, da
     assert "is it a label folder (--labels and --predictions swapped)?" in capsys.readouterr().err
     assert main(args + ["--labels", str(dataset), "--predictions", str(pred)]) == 0
     assert "swapped" not in capsys.readouterr().err
+
+
+def test_a_result_box_with_a_size_of_zero_or_less_is_refused_naming_its_line(tmp_path, dataset):
+    pred = copy_as_predictions(dataset, tmp_path / "pred")
+    path = pred / "000002.txt"
+    lines = path.read_text().splitlines()
+    fields = lines[1].split()
+    fields[8] = "-1.5"  # h
+    path.write_text("\n".join([lines[0], " ".join(fields), *lines[2:]]) + "\n")
+    with pytest.raises(kitti.KittiError, match=r"000002\.txt:2: box sizes \(h w l\) must be > 0, got -1\.5 "):
+        evaluate(dataset, pred)

@@ -130,6 +130,18 @@ def test_detector_runs_and_rejects_nan_outputs(make_onnx, tmp_path):
         det(pts)  # a NaN box is refused, never written as a result
 
 
+def test_detector_refuses_a_box_of_size_zero_or_less(make_onnx, tmp_path):
+    import onnx
+    from onnx import numpy_helper
+    model = onnx.load(str(make_onnx(tmp_path / "c.onnx")))
+    dims = next(t for t in model.graph.initializer if t.name == "dims")
+    dims.CopyFrom(numpy_helper.from_array(np.array([[4.0, -1.8, 1.5, 0.0]], np.float32), "dims"))
+    onnx.save(model, str(tmp_path / "neg.onnx"))
+    pts = np.random.default_rng(0).normal(size=(100, 4)).astype(np.float32)
+    with pytest.raises(ValueError, match=r"neg\.onnx: output 'boxes' has a box with a size <= 0 \(box 0: l w h 4 -1\.8 1\.5\)"):
+        OnnxDetector(tmp_path / "neg.onnx")(pts)
+
+
 def test_predict_writes_kitti_results_and_resumes(make_onnx, tmp_path, dataset):
     onnx_path = make_onnx(tmp_path / "c.onnx", two_stage=True)
     out = tmp_path / "pred"
