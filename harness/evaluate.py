@@ -116,8 +116,8 @@ def check_results(path: Path, labels: Labels) -> None:
     bad = np.flatnonzero(~(labels.dimensions > 0).all(axis=1))
     if len(bad):
         lines = [no for no, line in enumerate(Path(path).read_text().splitlines(), start=1) if line.strip()]
-        raise KittiError(path, f"box sizes (h w l) must be > 0, got {' '.join(f'{v:g}' for v in labels.dimensions[bad[0]])}",
-                         lines[bad[0]])
+        sizes = " ".join(f"{v:g}" for v in labels.dimensions[bad[0]])
+        raise KittiError(path, f"box sizes (h w l) must be > 0, got {sizes}", lines[bad[0]])
 
 
 def recall_at_iou(gt: list[Labels], boxes: list[Labels], thresholds=RECALL_THRESHOLDS, frames=None) -> dict:

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from harness.kitti import (Labels, atomic_write_text, check_image_fits_calib, folder_lock, frame_path, image_size,
-                           read_calib, read_image, read_image_set, read_points, write_labels)
+from harness.kitti import (KittiError, Labels, atomic_write_text, check_image_fits_calib, folder_lock, frame_path,
+                           image_size, read_calib, read_image, read_image_set, read_points, write_labels)
 
 CONTRACT_VERSION = "1"
 REQUIRED_OUTPUTS = ("boxes", "scores")
@@ -198,6 +198,8 @@ def check_contract(path) -> ContractInfo:
         if tensor.data_location == onnx.TensorProto.EXTERNAL:
             raise ContractError(path, f"tensor '{tensor.name}' is stored in an external file; the contract needs "
                                       "one self-contained file")
+    if model.ByteSize() == 0:
+        raise ContractError(path, "empty: no ONNX model in it")
     opsets = {o.domain: o.version for o in model.opset_import}
     opset = opsets.get("", opsets.get("ai.onnx", 0))
     if opset < MIN_OPSET:
@@ -221,6 +223,11 @@ def check_contract(path) -> ContractInfo:
     missing = [k for k in REQUIRED_METADATA if k not in meta]
     if missing:
         raise ContractError(path, f"metadata_props lack {', '.join(missing)} (the contract needs {', '.join(REQUIRED_METADATA)})")
+    if not meta["sotif.architecture"].strip():
+        raise ContractError(path, "metadata 'sotif.architecture' is empty; it names the detector in every table")
+    if [c.strip() for c in meta["sotif.classes"].split(",")] != ["Car"]:
+        raise ContractError(path, f"metadata 'sotif.classes' must be \"Car\" (the outputs carry no class, and every box "
+                                  f"is scored as a car), got {meta['sotif.classes']!r}")
     if point_cloud_range(meta["sotif.point_cloud_range"]) is None:
         raise ContractError(path, "metadata 'sotif.point_cloud_range' must be six numbers x_min, y_min, z_min, x_max, "
                                   "y_max, z_max (a JSON list or comma-separated), each min below its max, got "
@@ -382,7 +389,10 @@ def predict(onnx_path, data, out, split: str | Path = "test", runtime: str = "on
     ``predict`` into the same folder while this one runs is refused (``out/.lock``)."""
     data, out = Path(data), Path(out)
     det = OnnxDetector(onnx_path, runtime=runtime, threads=threads)
-    ids = read_image_set(split if isinstance(split, Path) else data / "ImageSets" / f"{split}.txt")
+    split_path = split if isinstance(split, Path) else data / "ImageSets" / f"{split}.txt"
+    ids = read_image_set(split_path)
+    if not ids:
+        raise KittiError(split_path, "lists no frames: nothing to predict")
     stamp = {"onnx_sha256": det.info.sha256, "runtime": runtime, "split": str(split), "data": _inputs_digest(data, ids)}
     _refuse_unrecorded_results(out)  # before the lock file: a refused folder stays as it was
     out.mkdir(parents=True, exist_ok=True)

@@ -69,6 +69,9 @@ def _metadata(key, value):
     (_without("sotif.point_cloud_range"), "metadata_props lack sotif.point_cloud_range"),
     (_metadata("sotif.point_cloud_range", "banana"), "'sotif.point_cloud_range' must be six numbers"),
     (_metadata("sotif.point_cloud_range", "0,-40,-3,70.4,40"), "'sotif.point_cloud_range' must be six numbers"),
+    (_metadata("sotif.classes", "Pedestrian"), "'sotif.classes' must be \"Car\" .*got 'Pedestrian'"),
+    (_metadata("sotif.classes", "Car,Cyclist"), "'sotif.classes' must be \"Car\""),
+    (_metadata("sotif.architecture", " "), "'sotif.architecture' is empty"),
 ])
 def test_contract_refuses_rules_broken_deeper_in_the_file(make_onnx, tmp_path, mutate, message):
     """Rules a file can break beyond its top-level nodes and first metadata key."""
@@ -116,6 +119,9 @@ def test_contract_refuses_garbage_and_missing(tmp_path):
         check_contract(tmp_path / "junk.onnx")
     with pytest.raises(ContractError, match="file not found"):
         check_contract(tmp_path / "none.onnx")
+    (tmp_path / "empty.onnx").write_bytes(b"")
+    with pytest.raises(ContractError, match=r"empty\.onnx: empty: no ONNX model in it"):
+        check_contract(tmp_path / "empty.onnx")
     with pytest.raises(ContractError, match="is a folder, not an ONNX file"):
         check_contract(tmp_path)
 
@@ -191,6 +197,13 @@ def test_predict_refuses_a_frame_image_that_is_no_image_or_not_the_calibrated_on
     with pytest.raises(ValueError, match=r"000002\.png: the image is 50 x 20 pixels, but .*000002\.txt's P2"):
         predict(onnx_path, dataset, tmp_path / "b", progress=False)
     assert sorted(f.name for f in (tmp_path / "b").glob("*.txt")) == ["000000.txt", "000001.txt"]
+
+
+def test_predict_refuses_a_split_of_no_frames(make_onnx, tmp_path, dataset):
+    (dataset / "ImageSets" / "none.txt").write_text("\n")
+    with pytest.raises(ValueError, match=r"none\.txt: lists no frames: nothing to predict"):
+        predict(make_onnx(tmp_path / "c.onnx"), dataset, tmp_path / "pred", split="none", progress=False)
+    assert not (tmp_path / "pred").exists()
 
 
 def test_predict_into_a_folder_of_other_results(make_onnx, tmp_path, dataset):
