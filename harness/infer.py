@@ -401,7 +401,8 @@ def predict(onnx_path, data, out, split: str | Path = "test", runtime: str = "on
 
 
 def _refuse_unrecorded_results(out: Path) -> None:
-    found = [] if (out / ".progress.json").is_file() else _result_files(out)
+    found = [] if (out / ".progress.json").is_file() else (
+        _result_files(out) + [p for p in (out / "predict.json", out / "latency_ms.csv") if p.exists()])
     if found:
         raise ValueError(f"{out}: holds result files ({found[0].name}, ...) that no earlier "
                          "'sotif-bench predict' into this folder recorded; remove them or choose another --out")

@@ -233,6 +233,12 @@ def test_predict_into_a_folder_of_other_results(make_onnx, tmp_path, dataset):
     with pytest.raises(ValueError, match=r"foreign: holds result files \(000001\.txt"):
         predict(onnx_path, dataset, foreign, progress=False)
     assert sorted(p.name for p in foreign.iterdir()) == ["000001.txt"]
+    summary = tmp_path / "summary"
+    summary.mkdir()
+    (summary / "predict.json").write_text("my own notes")
+    with pytest.raises(ValueError, match=r"summary: holds result files \(predict\.json"):
+        predict(onnx_path, dataset, summary, progress=False)
+    assert (summary / "predict.json").read_text() == "my own notes"
 
 
 def test_openvino_runtime_agrees_with_onnxruntime(make_onnx, tmp_path):
