@@ -82,7 +82,7 @@ def _data_root(labels: str) -> Path:
 def cmd_simulate(a) -> int:
     from simulator import generate
     out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=_nonempty_csv(a.weathers, "--weathers"),
-                   seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet)
+                   seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet, force=a.force)
     print(f"data set written to {out}")
     return 0
 
@@ -190,7 +190,11 @@ def _add_simulate(sub, quiet) -> None:
                        help="simulate the SOTIF test set or training scenes as a KITTI data set")
     s.add_argument("--preset", choices=["sotif", "train"], required=True,
                    help="sotif: the cut-out scenario under every weather; train: randomised training scenes")
-    s.add_argument("--out", required=True, help="the data set folder to write (resumed if it holds a partial one)")
+    s.add_argument("--out", required=True,
+                   help="the data set folder to write (resumed if it holds a partial one of the same options)")
+    s.add_argument("--force", action="store_true",
+                   help="write the data set over what the folder holds: a data set of other options, or other "
+                        "files (refused otherwise)")
     s.add_argument("--frames", type=int, help="number of frames (default: 547 for sotif, 400 for train)")
     s.add_argument("--weathers", help="comma-separated CARLA preset names (default: all 21 / the dry ones)")
     s.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bytes (default 0)")

@@ -88,3 +88,16 @@ def test_an_error_lands_on_its_own_line_after_an_open_progress_bar(monkeypatch, 
     err = capsys.readouterr().err
     assert err.endswith("\nsotif-bench report: error: frame 000003: broken\n")
     assert "predict" in err and not tqdm._instances
+
+
+def test_simulate_into_a_folder_of_other_files_needs_force(tmp_path, monkeypatch, capsys):
+    import simulator
+    (tmp_path / "notes.txt").write_text("mine")
+    argv = ["--quiet", "simulate", "--preset", "train", "--frames", "1", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path}: is not empty and holds no data set of this configuration (it has notes.txt)" in err
+    assert "--force" in err and [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
+    calls = []
+    monkeypatch.setattr(simulator, "generate", lambda out, **k: calls.append(k) or out)
+    assert main(argv + ["--force"]) == 0 and calls[0]["force"] is True
