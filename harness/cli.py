@@ -33,6 +33,33 @@ def _positive_int(text: str) -> int:
     return n
 
 
+def _nonnegative_int(text: str) -> int:
+    n = int(text)
+    if n < 0:
+        raise argparse.ArgumentTypeError(f"expected a non-negative integer, got {text!r}")
+    return n
+
+
+def _path(text: str) -> str:
+    """An output path as given: refused when empty (``Path("")`` is the current folder)."""
+    if not text:
+        raise argparse.ArgumentTypeError("expected a path, got an empty string")
+    return text
+
+
+def _folder(text: str) -> str:
+    """An output folder: a path that is not a file and has no file among its parents."""
+    path = Path(_path(text))
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{path}: is a file, expected a folder")
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise argparse.ArgumentTypeError(f"{parent}: is a file, so the folder {path} cannot be made")
+            break
+    return text
+
+
 def _output_file(text: str) -> Path:
     """A file path to write: not a folder, and no part of its parent path a file (checked before
     any work, so that a long evaluation or export does not fail at its last step)."""
@@ -82,7 +109,7 @@ def _data_root(labels: str) -> Path:
 def cmd_simulate(a) -> int:
     from simulator import generate
     out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=_nonempty_csv(a.weathers, "--weathers"),
-                   seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet)
+                   seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet, force=a.force)
     print(f"data set written to {out}")
     return 0
 
@@ -190,10 +217,15 @@ def _add_simulate(sub, quiet) -> None:
                        help="simulate the SOTIF test set or training scenes as a KITTI data set")
     s.add_argument("--preset", choices=["sotif", "train"], required=True,
                    help="sotif: the cut-out scenario under every weather; train: randomised training scenes")
-    s.add_argument("--out", required=True, help="the data set folder to write (resumed if it holds a partial one)")
+    s.add_argument("--out", required=True, type=_folder,
+                   help="the data set folder to write (resumed if it holds a partial one of the same options)")
+    s.add_argument("--force", action="store_true",
+                   help="write the data set over what the folder holds: a data set of other options, or other "
+                        "files (refused otherwise)")
     s.add_argument("--frames", type=int, help="number of frames (default: 547 for sotif, 400 for train)")
     s.add_argument("--weathers", help="comma-separated CARLA preset names (default: all 21 / the dry ones)")
-    s.add_argument("--seed", type=int, default=0, help="random seed; the same seed gives the same bytes (default 0)")
+    s.add_argument("--seed", type=_nonnegative_int, default=0,
+                   help="random seed; the same seed gives the same bytes (default 0)")
     s.add_argument("--workers", type=int, default=1, help="processes simulating frames at once (default 1)")
     s.add_argument("--lidar-model", choices=["physics", "carla"], default="physics",
                    help="physics: weather changes the LiDAR; carla: CARLA's weather-blind LiDAR (default physics)")
@@ -204,13 +236,14 @@ def _add_train(sub, quiet) -> None:
     s = sub.add_parser("train", parents=[quiet], help="train one detector on a KITTI data set")
     s.add_argument("--model", required=True, help="model name, e.g. pointpillars (see the README)")
     s.add_argument("--data", required=True, help="KITTI data set folder with ImageSets/train.txt")
-    s.add_argument("--out", required=True, help="folder for checkpoint.pt (a training there resumes)")
+    s.add_argument("--out", required=True, type=_folder, help="folder for checkpoint.pt (a training there resumes)")
     s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.add_argument("--profile", choices=["tiny", "compact", "kitti"], default="compact",
                    help="model size: tiny (tests), compact (CPU, default), kitti (the references' settings, GPU)")
     s.add_argument("--epochs", type=int, help="epochs (default: the profile's schedule for the model)")
     s.add_argument("--device", choices=["cpu", "cuda"], default="cpu", help="where to train (default cpu)")
-    s.add_argument("--seed", type=int, default=0, help="random seed of weights, order and augmentation (default 0)")
+    s.add_argument("--seed", type=_nonnegative_int, default=0,
+                   help="random seed of weights, order and augmentation (default 0)")
     s.add_argument("--workers", type=_positive_int,
                    help="data-parallel processes, each with its share of the cores and of every batch "
                         "(default: one per core, at most the batch size; 1 = one process)")
@@ -224,7 +257,7 @@ def _add_export(sub, quiet) -> None:
     s = sub.add_parser("export", parents=[quiet], help="export a checkpoint to one self-contained ONNX file")
     s.add_argument("--model", required=True, help="the model name the checkpoint was trained as")
     s.add_argument("--checkpoint", required=True, help="checkpoint.pt written by train")
-    s.add_argument("--out", required=True, help="the ONNX file to write")
+    s.add_argument("--out", required=True, type=_path, help="the ONNX file to write")
     s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.set_defaults(func=cmd_export)
 
@@ -234,7 +267,7 @@ def _add_predict(sub, quiet) -> None:
     s.add_argument("--onnx", required=True, help="ONNX file following the contract (README)")
     s.add_argument("--data", required=True, help="KITTI data set folder")
     s.add_argument("--split", default="test", help=SPLIT_HELP + " (default test)")
-    s.add_argument("--out", required=True, help="folder for the KITTI result files (a run there resumes)")
+    s.add_argument("--out", required=True, type=_folder, help="folder for the KITTI result files (a run there resumes)")
     s.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime", help="inference runtime (default onnxruntime)")
     s.set_defaults(func=cmd_predict)
 
@@ -247,14 +280,14 @@ def _add_evaluate(sub, quiet) -> None:
     s.add_argument("--group-by", help="a column of meta/frames.csv, e.g. weather")
     s.add_argument("--meta", help="with --group-by: the data set's meta/frames.csv (default: the one "
                    "beside the labels, <root>/meta/frames.csv, when there is one)")
-    s.add_argument("--output", required=True, help="results.json to write")
+    s.add_argument("--output", required=True, type=_path, help="results.json to write")
     s.add_argument("--force", action="store_true", help=FORCE_HELP)
     s.add_argument("--onnx", help="bring your own detector: predict with this ONNX file first")
     s.add_argument("--data", help="with --onnx: the KITTI data set to run on")
     s.add_argument("--data-split", help="the former spelling of --split with --onnx")
     s.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime", help="with --onnx: inference runtime")
     s.add_argument("--bootstrap", type=_positive_int, default=200, help="bootstrap resamples for 95%% intervals")
-    s.add_argument("--seed", type=int, default=0, help="seed of the bootstrap resampling (default 0)")
+    s.add_argument("--seed", type=_nonnegative_int, default=0, help="seed of the bootstrap resampling (default 0)")
     s.set_defaults(func=cmd_evaluate)
 
 
@@ -265,7 +298,7 @@ def _add_run(sub, quiet) -> None:
                    help="quick: a smoke run in minutes; default: compact models on 2 CPU cores (65-110 min); "
                         "full: the references' settings (GPU)")
     s.add_argument("--models", help="comma-separated model names (default: all available)")
-    s.add_argument("--out", help="run directory (default reports/<profile>)")
+    s.add_argument("--out", type=_folder, help="run directory (default reports/<profile>)")
     s.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime", help="inference runtime (default onnxruntime)")
     s.add_argument("--jobs", type=_positive_int,
                    help="models trained/exported/predicted at once (default: the profile's, 2; 1 = one after the other)")
@@ -284,7 +317,7 @@ def _add_run(sub, quiet) -> None:
 def _add_report(sub, quiet) -> None:
     s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report")
     s.add_argument("run_dir", help="the run folder (reports/NAME)")
-    s.add_argument("--sample", metavar="DIR",
+    s.add_argument("--sample", metavar="DIR", type=_folder,
                    help="then copy the report, tables/*.csv and figures into DIR (the repository's reports/sample)")
     s.set_defaults(func=cmd_report)
 

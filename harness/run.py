@@ -122,9 +122,11 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
     out = data_dir / preset
     from simulator.dataset import GENERATOR_VERSION
     key = {"preset": preset, "frames": frames, "seed": seed, "lidar": cfg.lidar_model, "generator": GENERATOR_VERSION}
+    # force: the folder is the run's own, and a changed key (e.g. another --lidar-model) simulates it
+    # again over the data set of the old one; a partial one of the same key still resumes
     stages.run(f"simulate_{preset}", key, lambda: {"out": str(generate(
         out, preset=preset, frames=frames, seed=seed, workers=cfg.workers, lidar_model=cfg.lidar_model,
-        progress=stages.progress))}, outputs=[out / "meta" / "dataset.json"])
+        progress=stages.progress, force=True))}, outputs=[out / "meta" / "dataset.json"])
     return file_digest(out / "meta" / "dataset.json")
 
 

@@ -168,6 +168,71 @@ def remove_stale_frames(root: Path, frame_ids: set[str]) -> int:
     return removed
 
 
+def _stored_config(root: Path) -> tuple[set[str], dict | None]:
+    """The config digests that ``root``'s meta/dataset.json and frame records name (unreadable ones
+    skipped: a damaged record's frame is made again), and the config meta/dataset.json holds."""
+    digests, config = set(), None
+    try:
+        meta = json.loads((root / "meta" / "dataset.json").read_text())
+        digests.add(meta["config_sha256"])
+        config = meta.get("config")
+    except (OSError, ValueError, LookupError, TypeError, AttributeError):
+        pass
+    for rec_path in sorted((root / "meta" / "frames").glob("*.json")):
+        try:
+            digests.add(json.loads(rec_path.read_text())["config"])
+        except (OSError, ValueError, LookupError, TypeError):
+            pass
+    return digests, config
+
+
+def _first_foreign_file(root: Path, frame_ids: set[str]) -> Path | None:
+    """A file in ``root`` that a generation of ``frame_ids`` cut short before its first frame record
+    cannot have left (it leaves only the files of its frames, temp files included, and meta/frames/)."""
+    for top in sorted(root.iterdir()):
+        if top.name not in ("meta", "training") or top.is_symlink() or not top.is_dir():
+            return top
+    for path in sorted(root.rglob("*")):
+        if path.is_dir() and not path.is_symlink():
+            continue
+        rel = path.relative_to(root).parts
+        frame_file = rel[0] == "training" and len(rel) == 3 and path.name.lstrip(".").split(".")[0] in frame_ids
+        if not (frame_file or rel[:2] == ("meta", "frames")):
+            return path
+    return None
+
+
+def _config_change(old: dict | None, cfg: GenerateConfig) -> str:
+    """What differs between a stored config and ``cfg``, for a message."""
+    if not isinstance(old, dict):
+        return "its frame records name another configuration"
+    new = cfg.as_dict()
+    changed = [f"{key} differs" if isinstance(new[key], (dict, list)) else f"{key} {old.get(key)} (asked {new[key]})"
+               for key in new if old.get(key) != new[key]]
+    return ", ".join(changed) or "its frame records name another configuration"
+
+
+def check_output(root: Path, cfg: GenerateConfig, frame_ids: set[str], force: bool = False) -> None:
+    """Refuse (ValueError, nothing changed) to write the data set of ``cfg`` into ``root`` when it holds
+    anything but a data set of this same configuration, whole or partial: a data set of another
+    configuration, or other files. ``force``: no check (the data set is written over what is there)."""
+    if root.exists() and not root.is_dir():
+        raise ValueError(f"{root}: output path exists and is not a directory")
+    if force or not root.exists():
+        return
+    digests, config = _stored_config(root)
+    how = "pass --force to replace it, or choose another output folder"
+    if digests - {cfg.digest()}:
+        raise ValueError(f"{root}: holds a data set simulated with another configuration "
+                         f"({_config_change(config, cfg)}); refusing to replace it ({how})")
+    if digests:
+        return  # this configuration's data set: resumed, or kept as it is
+    foreign = _first_foreign_file(root, frame_ids)
+    if foreign is not None:
+        raise ValueError(f"{root}: is not empty and holds no data set of this configuration (it has "
+                         f"{foreign.relative_to(root)}); refusing to write into it ({how})")
+
+
 def run_job(args) -> dict:
     """Make (or resume) one frame; returns its record {"config", "row", "files": {path: sha256}}."""
     root, cfg, job, digest = args
@@ -212,8 +277,13 @@ def _worker_init() -> None:
 
 def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathers: list[str] | None = None,
              seed: int = 0, workers: int = 1, lidar_model: str = "physics", progress: bool = True,
-             lidar_spec: LidarSpec | None = None) -> Path:
+             lidar_spec: LidarSpec | None = None, force: bool = False) -> Path:
     """Write the data set to `out` and return `out`. ValueError on invalid arguments.
+
+    A partial data set of the same configuration in `out` is resumed, a whole one kept; anything
+    else there (a data set of another configuration, other files) is refused unless `force`, which
+    writes the data set over it (the frames an earlier generation recorded and this one does not
+    plan are removed; files of no record stay).
 
     `lidar_spec` replaces the HDL-64E-like default sensor (its `model` is then set from
     `lidar_model`, "carla" turning it into CARLA's weather-blind ray-cast LiDAR).
@@ -226,11 +296,10 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     lidar = replace(base, model="physics") if lidar_model == "physics" else carla_spec(base)
     cfg = GenerateConfig(preset, int(frames), weathers, int(seed), lidar)
     root = Path(out)
-    if root.exists() and not root.is_dir():
-        raise ValueError(f"{root}: output path exists and is not a directory")
-    (root / "meta" / "frames").mkdir(parents=True, exist_ok=True)
     digest = cfg.digest()
     jobs = [(root, cfg, job, digest) for job in plan_jobs(cfg)]
+    check_output(root, cfg, {job.frame_id for _, _, job, _ in jobs}, force)
+    (root / "meta" / "frames").mkdir(parents=True, exist_ok=True)
     remove_stale_frames(root, {job.frame_id for _, _, job, _ in jobs})
     bar = tqdm(total=len(jobs), desc=f"simulate {preset}", unit="frame", disable=not progress)
     records = []

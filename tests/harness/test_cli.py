@@ -88,3 +88,54 @@ def test_an_error_lands_on_its_own_line_after_an_open_progress_bar(monkeypatch, 
     err = capsys.readouterr().err
     assert err.endswith("\nsotif-bench report: error: frame 000003: broken\n")
     assert "predict" in err and not tqdm._instances
+
+
+def _usage_error(argv, capsys) -> str:
+    """The message of an argument argparse refuses (exit 2)."""
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == 2
+    return capsys.readouterr().err
+
+
+OUTPUTS = [["simulate", "--preset", "train", "--out"], ["train", "--model", "pointpillars", "--data", "d", "--out"],
+           ["export", "--model", "second", "--checkpoint", "c.pt", "--out"],
+           ["predict", "--onnx", "m.onnx", "--data", "d", "--out"], ["evaluate", "--output"], ["run", "--out"],
+           ["report", "r", "--sample"]]
+
+
+@pytest.mark.parametrize("argv", OUTPUTS, ids=lambda argv: argv[0])
+def test_an_empty_output_path_is_an_error(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)  # an empty path would be this folder
+    assert f"argument {argv[-1]}: expected a path, got an empty string" in _usage_error(argv + [""], capsys)
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv", [a for a in OUTPUTS if a[0] in ("simulate", "train", "predict", "run")],
+                         ids=lambda argv: argv[0])
+def test_an_output_folder_that_is_a_file_is_an_error(argv, tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "notes.txt").write_text("mine")
+    assert "argument --out: notes.txt: is a file, expected a folder" in _usage_error(argv + ["notes.txt"], capsys)
+    assert "notes.txt: is a file, so the folder notes.txt/sub cannot be made" in \
+        _usage_error(argv + ["notes.txt/sub"], capsys)
+    assert (tmp_path / "notes.txt").read_text() == "mine" and len(list(tmp_path.iterdir())) == 1
+
+
+@pytest.mark.parametrize("argv", [OUTPUTS[0] + ["o"], OUTPUTS[1] + ["o"], ["evaluate", "--output", "r.json"]],
+                         ids=lambda argv: argv[0])
+def test_a_negative_seed_names_the_option(argv, capsys):
+    assert "argument --seed: expected a non-negative integer, got '-3'" in _usage_error(argv + ["--seed", "-3"], capsys)
+
+
+def test_simulate_into_a_folder_of_other_files_needs_force(tmp_path, monkeypatch, capsys):
+    import simulator
+    (tmp_path / "notes.txt").write_text("mine")
+    argv = ["--quiet", "simulate", "--preset", "train", "--frames", "1", "--out", str(tmp_path)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path}: is not empty and holds no data set of this configuration (it has notes.txt)" in err
+    assert "--force" in err and [p.name for p in tmp_path.iterdir()] == ["notes.txt"]
+    calls = []
+    monkeypatch.setattr(simulator, "generate", lambda out, **k: calls.append(k) or out)
+    assert main(argv + ["--force"]) == 0 and calls[0]["force"] is True

@@ -159,6 +159,19 @@ def test_wall_span_of_overlapping_stages():
     assert _wall_span(infos) == pytest.approx(grid.sum() / 1000, abs=0.01)
 
 
+def test_a_changed_lidar_model_simulates_the_run_data_again(tmp_path):
+    """The run's data folder is its own: a changed simulate key replaces the data set there."""
+    from harness.run import _simulate
+    from harness.stages import Stages
+    cfg = replace(TINY, train_frames=1)
+    stages = Stages(tmp_path, progress=False)
+    physics = _simulate(stages, cfg, tmp_path / "data", "train")
+    assert _simulate(stages, cfg, tmp_path / "data", "train") == physics  # current: skipped
+    carla = _simulate(stages, replace(cfg, lidar_model="carla"), tmp_path / "data", "train")
+    meta = json.loads((tmp_path / "data" / "train" / "meta" / "dataset.json").read_text())
+    assert carla != physics and meta["config"]["lidar"]["model"] == "carla"
+
+
 def test_a_second_run_into_the_same_folder_is_refused(tmp_path):
     from harness.kitti import folder_lock
     (tmp_path / "results.json").write_text("{}")

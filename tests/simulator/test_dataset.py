@@ -1,11 +1,13 @@
 import json
+import os
+import re
 
 import numpy as np
 import pytest
 
 from harness import kitti
 from simulator import generate
-from simulator.dataset import GenerateConfig, plan_jobs
+from simulator.dataset import GenerateConfig, check_output, plan_jobs
 from simulator.lidar import LidarSpec
 from simulator.weather import WEATHER_PRESETS
 
@@ -78,13 +80,13 @@ def test_training_scenes_with_another_sensor(tmp_path):
     assert kitti.read_image_set(out / "ImageSets" / "test.txt") == []
 
 
-def test_fewer_frames_into_the_same_folder_remove_the_extra_ones(tmp_path):
+def test_fewer_frames_forced_into_the_same_folder_remove_the_extra_ones(tmp_path):
     """Frames an earlier, longer generation made go (their files and records); files of no record stay."""
     spec = LidarSpec(name="VLP-16-like", elevations_deg=tuple(np.linspace(15.0, -15.0, 16)), azimuth_step_deg=0.4)
     out = generate(tmp_path / "t", "train", frames=3, seed=1, progress=False, lidar_spec=spec)
     mine = out / "training" / "velodyne" / "000007.bin"
     mine.write_bytes(b"\0" * 16)
-    generate(out, "train", frames=2, seed=1, progress=False, lidar_spec=spec)
+    generate(out, "train", frames=2, seed=1, progress=False, lidar_spec=spec, force=True)
     for kind in ("velodyne", "image_2", "calib", "label_2"):
         assert sorted(p.stem for p in (out / "training" / kind).iterdir()) == ["000000", "000001"] + (
             ["000007"] if kind == "velodyne" else [])
@@ -92,6 +94,74 @@ def test_fewer_frames_into_the_same_folder_remove_the_extra_ones(tmp_path):
     assert mine.read_bytes() == b"\0" * 16
     files = json.loads((out / "meta" / "dataset.json").read_text())["files"]
     assert not any("000002" in f for f in files)
+
+
+SMALL = LidarSpec(name="VLP-16-like", elevations_deg=tuple(np.linspace(15.0, -15.0, 16)), azimuth_step_deg=0.4)
+
+
+def _snapshot(root):
+    """Every path under ``root`` with its bytes (a link: its target), to compare before and after."""
+    return {str(p.relative_to(root)): os.readlink(p) if p.is_symlink() else p.read_bytes() if p.is_file() else None
+            for p in root.rglob("*")}
+
+
+def test_a_data_set_of_another_configuration_is_refused_unless_forced(tmp_path):
+    out = generate(tmp_path / "t", "train", frames=2, seed=1, progress=False, lidar_spec=SMALL)
+    before = _snapshot(out)
+    for change, named in (({"seed": 2}, "seed 1 (asked 2)"), ({"frames": 1}, "frames 2 (asked 1)"),
+                          ({"preset": "sotif", "weathers": ["ClearNoon"]}, "preset train (asked sotif)")):
+        with pytest.raises(ValueError, match=rf"{out}: holds a data set simulated with another configuration "
+                                             rf"\(.*{re.escape(named)}.*--force"):
+            generate(out, **{"preset": "train", "frames": 2, "seed": 1, "progress": False, "lidar_spec": SMALL,
+                             **change})
+        assert _snapshot(out) == before
+    (out / "meta" / "dataset.json").unlink()  # a partial data set: its frame records name the configuration
+    with pytest.raises(ValueError, match="another configuration"):
+        generate(out, "train", frames=2, seed=2, progress=False, lidar_spec=SMALL)
+    generate(out, "train", frames=1, seed=2, progress=False, lidar_spec=SMALL, force=True)
+    data = json.loads((out / "meta" / "dataset.json").read_text())
+    assert data["seed"] == 2 and data["n_frames"] == 1
+    assert sorted(p.name for p in (out / "training" / "velodyne").iterdir()) == ["000000.bin"]
+
+
+def test_the_same_configuration_resumes_a_partial_data_set_and_keeps_a_whole_one(tmp_path):
+    out = generate(tmp_path / "t", "train", frames=2, seed=1, progress=False, lidar_spec=SMALL)
+    whole = _snapshot(out)
+    generate(out, "train", frames=2, seed=1, progress=False, lidar_spec=SMALL)
+    assert _snapshot(out) == whole
+    (out / "meta" / "dataset.json").unlink()  # cut short after its first frame
+    (out / "meta" / "frames" / "000001.json").unlink()
+    kitti.frame_path(out, "velodyne", "000001").unlink()
+    generate(out, "train", frames=2, seed=1, progress=False, lidar_spec=SMALL)
+    assert _snapshot(out) == whole
+
+
+def test_a_generation_cut_short_before_its_first_frame_record_resumes(tmp_path):
+    cfg = GenerateConfig("train", 2, ("ClearNoon",), 1, SMALL)
+    (tmp_path / "meta" / "frames").mkdir(parents=True)
+    (tmp_path / "meta" / "frames" / ".000000.json.abcd1234.tmp").write_bytes(b"{")
+    kitti.frame_path(tmp_path, "velodyne", "000000").parent.mkdir(parents=True)
+    kitti.frame_path(tmp_path, "velodyne", "000000").write_bytes(b"\0" * 16)
+    kitti.frame_path(tmp_path, "velodyne", "000001").with_name(".000001.bin.abcd1234.tmp").write_bytes(b"")
+    check_output(tmp_path, cfg, {"000000", "000001"})
+    check_output(tmp_path / "new", cfg, {"000000", "000001"})
+
+
+@pytest.mark.parametrize("files, named", [
+    ({"notes.txt": b"mine"}, "notes.txt"),
+    ({"ImageSets/train.txt": b"000000\n", "training/velodyne/000000.bin": b"\0" * 16,
+      "training/velodyne/000005.bin": b"\0" * 16}, "ImageSets"),  # a KITTI folder of another source
+    ({"training/velodyne/000005.bin": b"\0" * 16}, "training/velodyne/000005.bin"),
+    ({"meta/frames.csv": b"frame_id\n"}, "meta/frames.csv")])
+def test_a_folder_of_other_files_is_refused_and_left_as_it_is(tmp_path, files, named):
+    for rel, data in files.items():
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / rel).write_bytes(data)
+    before = _snapshot(tmp_path)
+    with pytest.raises(ValueError, match=rf"{tmp_path}: is not empty and holds no data set of this configuration "
+                                         rf"\(it has {re.escape(named)}\).*--force"):
+        generate(tmp_path, "train", frames=2, seed=1, progress=False, lidar_spec=SMALL)
+    assert _snapshot(tmp_path) == before
 
 
 def test_frame_counts():

@@ -101,7 +101,7 @@ def test_views_are_relative_links_inside_the_data_set(sotif_set, tmp_path):
 
 def test_fewer_frames_leave_no_dangling_link_and_training_scenes_need_no_view(tmp_path):
     out = generate(tmp_path / "s", "sotif", frames=6, weathers=WEATHERS, seed=5, workers=1, progress=False)
-    generate(out, "sotif", frames=4, weathers=WEATHERS, seed=5, workers=1, progress=False)
+    generate(out, "sotif", frames=4, weathers=WEATHERS, seed=5, workers=1, progress=False, force=True)
     links = [p for p in out.rglob("*") if p.is_symlink()]
     assert links and all(p.exists() for p in links)
     stock_info_steps(out)
@@ -152,7 +152,7 @@ def test_planes_follow_the_frames_of_the_data_set(tmp_path):
     out = generate(tmp_path / "s", "train", frames=3, seed=1, workers=1, progress=False)
     assert sorted(p.stem for p in (out / "training" / "planes").glob("*.txt")) == \
         sorted(p.stem for p in (out / "training" / "velodyne").glob("*.bin"))
-    generate(out, "train", frames=2, seed=1, workers=1, progress=False)
+    generate(out, "train", frames=2, seed=1, workers=1, progress=False, force=True)
     assert sorted(p.stem for p in (out / "training" / "planes").glob("*.txt")) == \
         sorted(p.stem for p in (out / "training" / "velodyne").glob("*.bin"))
     assert len(list((out / "training" / "planes").iterdir())) == 2  # the dropped frame's plane went with it
