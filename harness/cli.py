@@ -148,6 +148,9 @@ def cmd_predict(a) -> int:
 def cmd_evaluate(a) -> int:
     from harness.evaluate import evaluate, format_table, label_dir, write_results
     from harness.protect import foreign_results, refuse_overwrite
+    if a.split and a.data_split and a.split != a.data_split:
+        raise ValueError(f"--split {a.split} and --data-split {a.data_split} disagree (--data-split is the former "
+                         "spelling of --split); give one")
     labels, predictions, split = a.labels, a.predictions, a.split or a.data_split  # --data-split: the old spelling
     _output_file(a.output)
     data = None

@@ -60,6 +60,10 @@ def test_split_is_a_name_or_a_file_in_predict_and_evaluate(make_onnx, tmp_path, 
         assert main(["--quiet", "evaluate", "--onnx", str(onnx_path), "--data", str(dataset), flag, "val",
                      "--output", str(out)]) == 0
         assert json.loads(out.read_text())["n_frames"] == 1
+    out = tmp_path / "both" / "results.json"
+    assert main(["--quiet", "evaluate", "--onnx", str(onnx_path), "--data", str(dataset), "--split", "test",
+                 "--data-split", "val", "--output", str(out)]) == 2
+    assert not out.parent.exists()
 
 
 def test_an_unknown_split_names_both_readings(make_onnx, tmp_path, dataset, capsys):
