@@ -70,8 +70,9 @@ def test_a_quick_run_is_refused_and_nothing_written(tmp_path, capsys):
 
 def _snapshot(root: Path) -> dict:
     """Every entry under ``root``: its bytes (files), its target (links) or None (folders)."""
-    return {str(p.relative_to(root)): (f"-> {p.readlink()}" if p.is_symlink() else p.read_bytes() if p.is_file() else None)
-            for p in sorted(root.rglob("*"))}
+    def content(p: Path):
+        return f"-> {p.readlink()}" if p.is_symlink() else p.read_bytes() if p.is_file() else None
+    return {str(p.relative_to(root)): content(p) for p in sorted(root.rglob("*"))}
 
 
 def _refused_destination(kind: str, run: Path, root: Path) -> Path:
