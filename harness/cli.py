@@ -195,10 +195,12 @@ def cmd_run(a) -> int:
 
 def cmd_report(a) -> int:
     from harness.report import render
+    from harness.sample import check_destination, publish_sample
+    if a.sample:
+        check_destination(a.run_dir, a.sample)  # before rendering: a refused DIR leaves everything as it was
     out = render(Path(a.run_dir))
     print(f"report: {out}")
     if a.sample:
-        from harness.sample import publish_sample
         print(f"sample: {publish_sample(Path(a.run_dir), Path(a.sample))}")
     return 0
 
@@ -321,7 +323,8 @@ def _add_report(sub, quiet) -> None:
     s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report")
     s.add_argument("run_dir", help="the run folder (reports/NAME)")
     s.add_argument("--sample", metavar="DIR", type=_folder,
-                   help="then copy the report, tables/*.csv and figures into DIR (the repository's reports/sample)")
+                   help="then copy the report, tables/*.csv and figures into DIR (the repository's reports/sample), "
+                        "replacing a previous sample there; a DIR holding anything else is refused")
     s.set_defaults(func=cmd_report)
 
 

@@ -4,7 +4,8 @@ Everything comes from the run's result files (``results.json``, ``results/<model
 set's meta and scans, the prediction files) through ``harness.tables`` and ``harness.figures``; the
 jinja2 templates in ``harness/templates`` only lay the prepared tables and figures out. The whole
 report is built in memory first and then written file by file atomically, so a bad input (missing or
-corrupt ``results.json``) raises ``KittiError`` naming the file before anything is written.
+corrupt ``results.json``, a value of the wrong type in a result file) raises ``KittiError`` naming the file
+before anything is written.
 """
 from __future__ import annotations
 

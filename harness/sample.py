@@ -15,6 +15,7 @@ from harness.kitti import KittiError
 from harness.tables import _read_json
 
 SAMPLE_PATTERNS = ("report.md", "index.html", "tables/*.csv", "figures/*.png")
+SAMPLE_DIRS = {Path(p).parent for p in SAMPLE_PATTERNS} - {Path(".")}
 
 
 def sample_files(run_dir: Path) -> list[Path]:
@@ -22,10 +23,41 @@ def sample_files(run_dir: Path) -> list[Path]:
     return sorted(p.relative_to(run_dir) for pattern in SAMPLE_PATTERNS for p in run_dir.glob(pattern) if p.is_file())
 
 
-def publish_sample(run_dir, dest) -> Path:
-    """Copy the rendered report of ``run_dir`` into ``dest`` (replacing what was there); returns ``dest``.
+def _foreign_entry(folder: Path) -> Path | None:
+    """The first entry of ``folder`` that a sample does not hold (a symbolic link counts as foreign), or None
+    when ``folder`` is a previous sample or empty: replacing it then deletes nothing else."""
+    expected = set(sample_files(folder))
+    for p in folder.rglob("*"):
+        rel = p.relative_to(folder)
+        if p.is_symlink() or not (rel in expected or rel in SAMPLE_DIRS and p.is_dir()):
+            return rel
+    return None
 
-    A quick-profile run is refused: its tiny models' numbers mean nothing."""
+
+def check_destination(run_dir, dest) -> None:
+    """Raise ValueError unless ``dest`` may become ``run_dir``'s sample: a new folder, an empty one or a previous
+    sample, neither holding the run nor inside it."""
+    run_dir, dest = Path(run_dir), Path(dest)
+    run, target = run_dir.resolve(), dest.resolve()
+    if dest.is_symlink():
+        raise ValueError(f"{dest}: is a symbolic link; name the sample folder itself")
+    if dest.exists() and not dest.is_dir():
+        raise ValueError(f"{dest}: is a file, not a folder; the sample must go to a folder of its own")
+    if target == run or target in run.parents:
+        raise ValueError(f"{dest}: holds the run folder {run_dir}; publishing the sample there would delete the run")
+    if run in target.parents:
+        raise ValueError(f"{dest}: the sample folder must lie outside the run folder {run_dir}")
+    foreign = _foreign_entry(dest) if dest.is_dir() else None
+    if foreign is not None:
+        raise ValueError(f"{dest}: is not empty and not a previous sample (it holds {foreign}, which a sample "
+                         "does not); choose a new or empty folder")
+
+
+def publish_sample(run_dir, dest) -> Path:
+    """Copy the rendered report of ``run_dir`` into ``dest`` (replacing a previous sample there); returns ``dest``.
+
+    A quick-profile run is refused: its tiny models' numbers mean nothing; so is a ``dest`` that
+    ``check_destination`` refuses."""
     run_dir, dest = Path(run_dir), Path(dest)
     summary_path = run_dir / "results.json"
     if _read_json(summary_path).get("profile") == "quick":
@@ -34,8 +66,7 @@ def publish_sample(run_dir, dest) -> Path:
     for needed in ("report.md", "index.html"):
         if Path(needed) not in files:
             raise KittiError(run_dir / needed, "file not found (render the report first)")
-    if dest.resolve() == run_dir.resolve() or run_dir.resolve() in dest.resolve().parents:
-        raise ValueError(f"{dest}: the sample folder must lie outside the run folder {run_dir}")
+    check_destination(run_dir, dest)
     dest.parent.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".tmp"))
     old = None

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from harness import result_schema
 from harness.kitti import KittiError, atomic_write_text, read_frames_meta
 
 RUN_SCHEMA = "sotif-bench/run/1"
@@ -60,10 +61,12 @@ def _check_summary(path: Path, summary: dict) -> None:
     for name, m in models.items():
         if not isinstance(m, dict) or "results" not in m:
             raise KittiError(path, f"model {name!r} has no 'results' entry")
+    result_schema.check(path, summary, result_schema.SUMMARY)
 
 
 def load_run(run_dir) -> Run:
-    """Load results.json, every model's results file, the data meta and the per-frame data statistics."""
+    """Load results.json, every model's results file, the data meta and the per-frame data statistics; a JSON
+    value of the wrong type raises ``KittiError`` naming the file and the key (``harness.result_schema``)."""
     run_dir = Path(run_dir)
     path = run_dir / "results.json"
     summary = _read_json(path)
@@ -75,6 +78,7 @@ def load_run(run_dir) -> Run:
         for key in ("kitti", "headline", "distance", "recall"):
             if key not in res:
                 raise KittiError(res_path, f"no {key!r} entry (not a harness.evaluate results file)")
+        result_schema.check(res_path, res, result_schema.RESULTS)
         results[name] = res
     meta_path, stats_path = run_dir / "data" / "sotif" / "meta" / "frames.csv", run_dir / "tables" / "data_stats.csv"
     meta = read_frames_meta(meta_path) if meta_path.is_file() else None

@@ -1,11 +1,14 @@
 import json
 import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
 from harness import kitti, report
+from harness.cli import main
 from harness.evaluate import evaluate, write_results
 from harness.kitti import KittiError, Labels
 from harness.sotif import sotif_view
@@ -141,6 +144,46 @@ def test_bad_results_json_names_the_file_and_writes_nothing(tmp_path, content, m
     with pytest.raises(KittiError, match=f"results.json: {message}"):
         report.render(tmp_path)
     assert not (tmp_path / "index.html").exists() and not (tmp_path / "tables").exists()
+
+
+@pytest.fixture(scope="module")
+def unrendered(tmp_path_factory):
+    """A run that has not been rendered yet (no tables, figures or report)."""
+    return make_run(tmp_path_factory.mktemp("unrendered"))
+
+
+def _set(doc: dict, keys: str, value) -> None:
+    *parents, last = keys.split("/")
+    for k in parents:
+        doc = doc[k]
+    doc[last] = value
+
+
+@pytest.mark.parametrize("file,keys,value,message", [
+    ("results/alpha.json", "kitti", None, "'kitti' is null, expected an object"),
+    ("results/alpha.json", "headline/3d/0.7", "62.5", "'headline.3d.0.7' is a string, expected a number"),
+    ("results/beta.json", "groups_by/weather/rows/ClearNoon/headline/bev/0.7", "62.5",
+     "'groups_by.weather.rows.ClearNoon.headline.bev.0.7' is a string, expected a number"),
+    ("results/alpha.json", "groups_by/weather/rows/ClearNoon/headline_ci95/3d", [1.0],
+     "'groups_by.weather.rows.ClearNoon.headline_ci95.3d' is a list of 1, expected a list of 2"),
+    ("results.json", "models/alpha/sotif", [1, 2], "'models.alpha.sotif' is a list, expected an object"),
+    ("results.json", "models/beta/runtime", "x", "'models.beta.runtime' is a string, expected an object"),
+    ("results.json", "models/alpha/params", True, "'models.alpha.params' is true, expected a number or null"),
+    ("results.json", "wall_seconds", "12 s", "'wall_seconds' is a string, expected a number or null"),
+])
+def test_a_value_of_the_wrong_type_names_the_file_and_key_and_writes_nothing(unrendered, tmp_path, capsys, file, keys,
+                                                                             value, message):
+    root = Path(shutil.copytree(unrendered, tmp_path / "run"))
+    doc = json.loads((root / file).read_text())
+    _set(doc, keys, value)
+    (root / file).write_text(json.dumps(doc))
+    with pytest.raises(KittiError, match=re.escape(f"{root / file}: {message}")):
+        report.render(root)
+    assert main(["--quiet", "report", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"sotif-bench report: error: {root / file}: {message}") and "Traceback" not in err
+    assert not (root / "index.html").exists() and not (root / "report.md").exists()
+    assert not (root / "tables").exists() and not (root / "figures").exists()
 
 
 def test_report_reads_on_its_own(rendered):

@@ -1,4 +1,6 @@
 import json
+import shutil
+from pathlib import Path
 
 import pandas as pd
 import pytest
@@ -6,7 +8,7 @@ import pytest
 from harness import report
 from harness.cli import main
 from harness.kitti import KittiError
-from harness.sample import publish_sample
+from harness.sample import publish_sample, sample_files
 from tests.harness.test_report import make_run
 
 
@@ -64,3 +66,66 @@ def test_a_quick_run_is_refused_and_nothing_written(tmp_path, capsys):
     assert main(["report", str(root), "--sample", str(tmp_path / "sample")]) == 2
     assert "results.json" in capsys.readouterr().err
     assert not (tmp_path / "sample").exists()
+
+
+def _snapshot(root: Path) -> dict:
+    """Every entry under ``root``: its bytes (files), its target (links) or None (folders)."""
+    def content(p: Path):
+        return f"-> {p.readlink()}" if p.is_symlink() else p.read_bytes() if p.is_file() else None
+    return {str(p.relative_to(root)): content(p) for p in sorted(root.rglob("*"))}
+
+
+def _refused_destination(kind: str, run: Path, root: Path) -> Path:
+    """A --sample folder that must be refused: the run's parent or the run itself, a data set, a file, a link."""
+    if kind == "parent":
+        return run.parent
+    if kind == "run":
+        return run
+    if kind == "data set":
+        return Path(shutil.copytree(run / "data" / "sotif", root / "dataset"))
+    if kind == "file":
+        (root / "sample").write_text("not a folder\n")
+    elif kind == "link":
+        (root / "sample").symlink_to(run / "tables", target_is_directory=True)
+    return root / "sample"
+
+
+@pytest.mark.parametrize("kind,reason", [("parent", "holds the run folder"), ("run", "holds the run folder"),
+                                         ("data set", "not a previous sample"), ("file", "is a file"),
+                                         ("link", "symbolic link")])
+def test_a_destination_that_is_not_a_sample_is_refused_and_left_as_it_was(run_dir, tmp_path, capsys, kind, reason):
+    run = Path(shutil.copytree(run_dir, tmp_path / "par" / "run"))
+    (tmp_path / "par" / "notes.txt").write_text("my notes\n")
+    dest = _refused_destination(kind, run, tmp_path)
+    before = _snapshot(tmp_path)
+    with pytest.raises(ValueError, match=reason):
+        publish_sample(run, dest)
+    try:
+        rc = main(["--quiet", "report", str(run), "--sample", str(dest)])
+    except SystemExit as stop:  # the argument parser's refusal (a file given as the folder)
+        rc = stop.code
+    err = capsys.readouterr().err
+    assert rc == 2 and f"{dest}: " in err and "Traceback" not in err
+    assert reason in err or (kind == "file" and "is a file, expected a folder" in err)
+    assert _snapshot(tmp_path) == before  # the run, the notes and the destination byte for byte
+
+
+@pytest.mark.parametrize("exists", [False, True])
+def test_a_new_or_empty_folder_becomes_the_sample(run_dir, tmp_path, exists):
+    dest = tmp_path / "reports" / "sample"
+    if exists:
+        dest.mkdir(parents=True)
+    assert main(["--quiet", "report", str(run_dir), "--sample", str(dest)]) == 0
+    assert (dest / "index.html").read_bytes() == (run_dir / "index.html").read_bytes()
+    assert sorted(p.name for p in dest.parent.iterdir()) == ["sample"]
+
+
+def test_a_previous_sample_is_replaced_whole(run_dir, tmp_path):
+    dest = publish_sample(run_dir, tmp_path / "sample")
+    (dest / "figures" / "gone.png").write_bytes(b"old figure")
+    (dest / "tables" / "kitti_ap.csv").write_text("old")
+    (dest / "report.md").unlink()  # a partial sample is a sample still
+    assert main(["--quiet", "report", str(run_dir), "--sample", str(dest)]) == 0
+    assert sorted(map(str, (p.relative_to(dest) for p in dest.rglob("*") if p.is_file()))) == \
+        sorted(map(str, sample_files(run_dir)))
+    assert (dest / "tables" / "kitti_ap.csv").read_bytes() == (run_dir / "tables" / "kitti_ap.csv").read_bytes()
