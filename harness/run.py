@@ -118,8 +118,8 @@ _SAMPLE_MINUTES = {"mvx_net": 15, "point_rcnn": 33, "pointpillars": 15, "pv_rcnn
 # What a simulate stage records of its data set: every file the simulator writes (scans, images,
 # calibrations, labels, road planes, splits, the per-frame records and meta/dataset.json); not the
 # toolkit views (symlinks to these files) nor the ground-truth database training adds. The scans are
-# re-read only when their mtime changed (``by_stat``): checking the default run's 850 frames (1.3 GB)
-# takes 0.3-0.6 s, against 2-8 s for hashing every byte (docs/performance.md).
+# re-read only when their mtime changed (``by_stat``): checking the default run's 847 frames (1.3 GB)
+# takes 0.2-0.6 s, against 1.7-8 s for hashing every byte (docs/performance.md).
 DATA_PARTS = ("training/velodyne", "training/image_2", "training/calib", "training/label_2", "training/planes",
               "ImageSets", "meta")
 
