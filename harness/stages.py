@@ -3,10 +3,12 @@
 Every stage writes a record ``RUN/.stages/<stage>.json``: ``key`` (the hash of its inputs and
 config), ``info`` (what it reported) and ``outputs`` (the SHA-256 of each file it wrote, by path
 relative to the run folder; a folder output counts every file in it but the hidden bookkeeping
-ones). A stage is skipped only when its key matches and every recorded output is there with its
-recorded hash. An output that is missing or was changed since (truncated, emptied, edited) is
-removed and the stage runs again, with a line that names the file: a stage resumes from what is
-left, so a damaged file is made anew and a sound one is kept.
+ones); a stage run ``by_stat`` also keeps ``stats``, the size and mtime of its big files. A stage
+is skipped only when its key matches and every recorded output is there with its recorded hash.
+An output that is missing or was changed since (truncated, emptied, edited) is removed and the
+stage runs again, with a line that names the file: a stage resumes from what is left, so a
+damaged file is made anew and a sound one is kept. A record that holds no hash of an output (an
+older version recorded fewer) runs the stage again too, to record them all.
 """
 from __future__ import annotations
 
@@ -19,9 +21,17 @@ from harness.dataset import config_hash
 from harness.kitti import atomic_write_text
 
 
+BIG_FILE = 1 << 20  # bytes: a stage's record may keep such files' size and mtime, to skip reading them
+
+
 def file_digest(path: Path) -> str:
     from harness.infer import sha256_file
     return sha256_file(path)[:16] if Path(path).is_file() else "missing"
+
+
+def _stat(path: Path) -> list[int]:
+    st = path.stat()
+    return [st.st_size, st.st_mtime_ns]
 
 
 def _files(path: Path) -> list[Path]:
@@ -55,12 +65,17 @@ class Stages:
     def hashes(self, outputs) -> dict[str, str]:
         return {p.relative_to(self.root).as_posix(): file_digest(p) for o in outputs for p in _files(Path(o))}
 
-    def run(self, name: str, key, fn, outputs=()) -> dict:
-        """Run ``fn() -> dict`` unless the stage's record has the same key and its outputs are as it wrote them."""
+    def run(self, name: str, key, fn, outputs=(), by_stat: bool = False) -> dict:
+        """Run ``fn() -> dict`` unless the stage's record has the same key and its outputs are as it wrote them.
+
+        ``by_stat``: the record also keeps the size and mtime of each output of ``BIG_FILE`` bytes or
+        more, and a later check reads such a file only when its mtime changed (one of another size is
+        damaged, one as recorded is taken as written): a data set's scans, a GB or more, whose full
+        hashing takes seconds from a cold disk cache."""
         key = config_hash(key)
         rec = self.record(name)
         if rec and rec.get("key") == key:
-            damaged = self._damaged(rec.get("outputs"), outputs)
+            damaged = self._damaged(rec.get("outputs"), outputs, rec.get("stats", {}))
             if not damaged:
                 self._say(f"[skip] {name} (up to date)")
                 return rec["info"]
@@ -71,9 +86,11 @@ class Stages:
         t0 = time.perf_counter()
         info = fn() or {}
         info = {**info, "seconds": round(time.perf_counter() - t0, 3), "finished": round(time.time(), 3)}
-        atomic_write_text(self.dir / f"{name}.json", json.dumps({"key": key, "info": info,
-                                                                 "outputs": self.hashes(outputs)},
-                                                                indent=1, default=str))
+        record = {"key": key, "info": info, "outputs": self.hashes(outputs)}
+        if by_stat:
+            stats = {rel: _stat(self.root / rel) for rel in record["outputs"]}
+            record["stats"] = {rel: st for rel, st in stats.items() if st[0] >= BIG_FILE}
+        atomic_write_text(self.dir / f"{name}.json", json.dumps(record, indent=1, default=str))
         self._say(f"[done] {name} in {info['seconds']:.0f} s")
         return info
 
@@ -88,22 +105,46 @@ class Stages:
                       f"ETA {per_epoch * (epochs - done):.0f} s")
         return say
 
-    def _damaged(self, recorded: dict | None, outputs) -> list[str]:
+    def _damaged(self, recorded: dict | None, outputs, stats: dict) -> list[str]:
         """What is wrong with a stage's outputs (empty: all as recorded); a changed file is removed."""
         if recorded is None:
             return ["its record holds no hashes of its outputs (an older version wrote it)"]
         missing = [f"{Path(o).relative_to(self.root)} is missing" for o in outputs if not Path(o).exists()]
-        now = self.hashes(outputs)
+        now = {p.relative_to(self.root).as_posix() for o in outputs for p in _files(Path(o))}
         problems = []
         for rel, expected in recorded.items():
+            path = self.root / rel
             if rel not in now:
                 problems.append(f"{rel} is missing")
-            elif now[rel] != expected:
-                path = self.root / rel
+            elif not as_recorded(path, expected, stats.get(rel)):
                 problems.append(f"{rel} is not the file the stage wrote (now {path.stat().st_size} bytes)")
                 path.unlink()
-        return problems or missing
+        return problems + self._uncovered(recorded, outputs, now) or missing
+
+    def _uncovered(self, recorded: dict, outputs, now: set[str]) -> list[str]:
+        """The outputs that hold files now but none in the record: a version that recorded fewer of
+        the stage's outputs wrote it (e.g. a data set's ``meta/dataset.json`` alone)."""
+        def under(rel: str, paths) -> bool:
+            return any(p == rel or p.startswith(rel + "/") for p in paths)
+        rels = [Path(o).relative_to(self.root).as_posix() for o in outputs]
+        bare = [rel for rel in rels if under(rel, now) and not under(rel, recorded)]
+        if not bare:
+            return []
+        more = f" and {len(bare) - 1} more output(s)" if len(bare) > 1 else ""
+        return [f"its record holds no hashes of {bare[0]}{more} (an older version wrote it)"]
 
     def _say(self, msg: str) -> None:
         if self.progress:
             print(self.prefix + msg, flush=True)
+
+
+def as_recorded(path: Path, digest: str, stat: list[int] | None) -> bool:
+    """Whether ``path`` is the file whose digest was recorded: read and hashed, unless its recorded
+    ``stat`` (size, mtime) tells without reading it."""
+    if stat is not None:
+        now = _stat(path)
+        if now[0] != stat[0]:
+            return False
+        if now == stat:
+            return True
+    return file_digest(path) == digest

@@ -125,11 +125,14 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     from harness.infer import check_contract
     check_contract(onnx_file)
     assert {p: p.read_text() for p in kept} == kept
-    # 7. bad input in a model's job ends the run with its file and problem, in the run's process or in a job's
+    # 7. bad input in a model's job ends the run with its file and problem, in the run's process or in a job's:
+    # a scan the data set's record vouches for, as if the simulator had written it so (a damaged scan is
+    # simulated again: test_a_changed_or_damaged_data_set_file_is_simulated_again)
     from harness.cli import main
     from harness.kitti import KittiError
     scan = out / f"data/sotif/training/velodyne/{test_ids[2]}.bin"
     scan.write_bytes(scan.read_bytes()[:1001])
+    vouch_for(out, "simulate_sotif", scan)
     for name in two:
         (out / f"predictions/{name}/{test_ids[2]}.txt").unlink()
     with pytest.raises(KittiError, match=f"{scan}: size 1001 bytes is not a multiple of 16"):
@@ -140,6 +143,99 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     assert main(args) == 2
     err = capsys.readouterr().err
     assert f"sotif-bench run: error: {scan}: size 1001 bytes is not a multiple of 16" in err and "Traceback" not in err
+
+
+def vouch_for(run_dir, stage, path):
+    """Record ``path`` as it is now as the file ``stage`` wrote."""
+    from harness.stages import file_digest
+    record = run_dir / ".stages" / f"{stage}.json"
+    rec, rel = json.loads(record.read_text()), path.relative_to(run_dir).as_posix()
+    rec["outputs"][rel] = file_digest(path)
+    rec["stats"].pop(rel, None)
+    record.write_text(json.dumps(rec))
+
+
+def van(label_text: str) -> str:
+    """A label file's text with its first car labelled Van."""
+    lines = label_text.splitlines(keepends=True)
+    first = next(i for i, line in enumerate(lines) if line.startswith("Car "))
+    return "".join(lines[:first] + ["Van" + lines[first][3:]] + lines[first + 1:])
+
+
+def test_a_changed_or_damaged_data_set_file_is_simulated_again(tmp_path, monkeypatch, capsys):
+    """The data sets are the simulate stages' outputs: an edited label or a truncated scan is removed and
+    its frame simulated again, to the same bytes, so nothing after it runs again; a data set whose bytes
+    do change runs the stages that read it again."""
+    import simulator.dataset as sd
+    from harness.evaluate import evaluate
+    from harness.kitti import frame_path, read_image_set
+    from harness.stages import file_digest
+    out, sotif = tmp_path / "run", tmp_path / "run/data/sotif"
+    go = lambda: run(models=["pointpillars"], out=out, progress=False, config=TINY)
+    go()
+    before, results = stage_keys(out), (out / "results/pointpillars.json").read_text()
+    n_car = json.loads(results)["n_car"]
+    made, real_make = [], sd.make_frame
+    counted = lambda root, cfg, job: made.append(job.frame_id) or real_make(root, cfg, job)
+    monkeypatch.setattr(sd, "make_frame", counted)
+    # 1. nothing changed: every stage skipped, no frame made
+    go()
+    assert stage_keys(out) == before and made == []
+    # 2. an edited label and a truncated scan of two test frames, a truncated training scan
+    ids = read_image_set(sotif / "ImageSets/test.txt")
+    fid = next(i for i in ids if "\nCar " in "\n" + frame_path(sotif, "label_2", i).read_text())
+    other = next(i for i in ids if i != fid)
+    label, scan = frame_path(sotif, "label_2", fid), frame_path(sotif, "velodyne", other)
+    train_scan = frame_path(out / "data/train", "velodyne", "000001")
+    kept = {p: p.read_bytes() for p in (label, scan, train_scan)}
+    label.write_text(van(label.read_text()))
+    for path in (scan, train_scan):
+        path.write_bytes(kept[path][:1001])
+    stale = evaluate(sotif, out / "predictions/pointpillars", split=sotif / "ImageSets/test.txt", n_bootstrap=1)
+    assert stale["n_car"] == n_car - 1  # the results no longer those of the data set
+    capsys.readouterr()
+    go()
+    err = capsys.readouterr().err
+    for line in (f"simulate_sotif: data/sotif/training/velodyne/{other}.bin is not the file the stage wrote (now 1001 "
+                 "bytes) (and 1 more file(s))", "simulate_train: data/train/training/velodyne/000001.bin is not the "
+                 "file the stage wrote (now 1001 bytes)"):
+        assert f"[redo] {line}; running the stage again" in err
+    assert sorted(made) == sorted([fid, other, "000001"]) and {p: p.read_bytes() for p in kept} == kept
+    after = stage_keys(out)
+    assert {k for k in after if after[k] != before[k]} == {"simulate_sotif", "simulate_train"}
+    assert (out / "results/pointpillars.json").read_text() == results
+    # 3. a frame simulated again with other bytes (here its first car labelled Van) changes the test set:
+    # prediction and evaluation run again, training does not, and the results count one car less
+
+    def relabelled(root, cfg, job):
+        row, files = real_make(root, cfg, job)
+        if job.frame_id == fid:
+            path = frame_path(root, "label_2", fid)
+            path.write_text(van(path.read_text()))
+        return row, files
+    monkeypatch.setattr(sd, "make_frame", relabelled)
+    label.write_text("")
+    go()
+    again = stage_keys(out)
+    assert {k for k in again if again[k] != after[k]} == {"simulate_sotif", "predict_pointpillars",
+                                                          "predict_val_pointpillars", "evaluate_pointpillars"}
+    assert json.loads((out / "results/pointpillars.json").read_text())["n_car"] == n_car - 1
+    # 4. records of the version that hashed meta/dataset.json alone: the simulator checks every frame and
+    # makes none, and nothing after it runs again
+    for preset in ("train", "sotif"):
+        record, meta = out / f".stages/simulate_{preset}.json", out / f"data/{preset}/meta/dataset.json"
+        rec = json.loads(record.read_text())
+        record.write_text(json.dumps({"key": rec["key"], "info": rec["info"],
+                                      "outputs": {meta.relative_to(out).as_posix(): file_digest(meta)}}))
+    monkeypatch.setattr(sd, "make_frame", counted)
+    made.clear()
+    capsys.readouterr()
+    go()
+    assert ("[redo] simulate_train: its record holds no hashes of data/train/training/velodyne and 5 more output(s) "
+            "(an older version wrote it)") in capsys.readouterr().err
+    upgraded = stage_keys(out)
+    assert made == [] and {k for k in upgraded if upgraded[k] != again[k]} == {"simulate_sotif", "simulate_train"}
+    assert "data/sotif/training/label_2/000000.txt" in json.loads(upgraded["simulate_sotif"])["outputs"]
 
 
 def test_wall_span_of_overlapping_stages():
