@@ -446,6 +446,22 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
     return cfg, names, Path(out) if out else Path("reports") / profile
 
 
+def _refuse_foreign_folder(run_dir: Path) -> None:
+    """A run writes config.json, report.md, index.html and more into its folder: one that holds
+    files but no run (no stage record, no run config) is refused, not written over."""
+    visible = sorted(p.name for p in run_dir.iterdir() if not p.name.startswith(".")) if run_dir.is_dir() else []
+    if not visible or (run_dir / ".stages").is_dir():  # hidden ones: a lock or temp file of a run
+        return
+    try:
+        config = json.loads((run_dir / "config.json").read_text())
+        if isinstance(config, dict) and {"profile", "models"} <= set(config):
+            return  # a run stopped before its first stage ended
+    except (OSError, ValueError):
+        pass
+    raise ValueError(f"{run_dir}: holds files ({visible[0]}, ...) but no sotif-bench run; choose another --out "
+                     "(an empty or new folder, or a run's folder to resume it)")
+
+
 def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
         config: RunConfig | None = None, jobs: int | None = None, seeds: int | None = None,
         lidar_model: str | None = None, warm_start: bool | None = None) -> Path:
@@ -470,6 +486,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         cfg = replace(cfg, seeds=seeds)
     profile = cfg.profile
     names = with_siblings(cfg, run_dir, names, progress)
+    _refuse_foreign_folder(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     with folder_lock(run_dir, "run"):
         stale = remove_temp_files(run_dir)

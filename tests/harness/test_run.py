@@ -271,6 +271,7 @@ def test_a_changed_lidar_model_simulates_the_run_data_again(tmp_path):
 def test_a_second_run_into_the_same_folder_is_refused(tmp_path):
     from harness.kitti import folder_lock
     (tmp_path / "results.json").write_text("{}")
+    (tmp_path / ".stages").mkdir()  # a run's folder
     with folder_lock(tmp_path, "run"):
         with pytest.raises(ValueError, match=f"{tmp_path}: another sotif-bench run is writing to this folder"):
             run(models=["pointpillars"], out=tmp_path, progress=False, config=TINY)
@@ -303,6 +304,17 @@ def test_bad_profile_and_model_names():
         run(profile="huge")
     with pytest.raises(ValueError, match="unknown model"):
         run(models=["yolo"], profile="quick")
+
+
+def test_a_folder_of_other_files_is_not_taken_for_a_run(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "report.md").write_text("my report\n")
+    (out / "config.json").write_text('{"editor": "vim"}')
+    with pytest.raises(ValueError, match=r"mine: holds files \(config\.json, \.\.\.\) but no sotif-bench run"):
+        run(profile="quick", models=["pointpillars"], out=out, progress=False)
+    assert sorted(p.name for p in out.iterdir()) == ["config.json", "report.md"]
+    assert (out / "report.md").read_text() == "my report\n" and (out / "config.json").read_text() == '{"editor": "vim"}'
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
