@@ -352,7 +352,9 @@ def _bad_input(e: Exception) -> bool:
     ``harness.infer.ContractError`` among them), bad paths, and full or read-only disks."""
     return (isinstance(e, (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError,
                            PermissionError))
-            or isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS))
+            or isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.ENAMETOOLONG,
+                                                       errno.ELOOP)
+            or isinstance(e, RuntimeError) and str(e).startswith("Symlink loop"))  # pathlib's resolve(strict=False)
 
 
 def _close_bars() -> None:

@@ -82,9 +82,14 @@ def load_folder(folder: Path, ids, with_score: bool) -> list[Labels]:
     return out
 
 
-_GT_RULES = (  # (rule, test of a row, its values): objects but DontCare
+_BOX_RULES = (  # (rule, test of a row, its values): every object of a result file, ground truth but DontCare
     ("box sizes (h w l) must be > 0", lambda lab: (lab.dimensions > 0).all(axis=1),
      lambda lab, i: " ".join(f"{v:g}" for v in lab.dimensions[i])),
+    ("the 2D box (x1 y1 x2 y2) must have x1 <= x2 and y1 <= y2",
+     lambda lab: (lab.bbox[:, 0] <= lab.bbox[:, 2]) & (lab.bbox[:, 1] <= lab.bbox[:, 3]),
+     lambda lab, i: " ".join(f"{v:g}" for v in lab.bbox[i])),
+)
+_GT_RULES = _BOX_RULES + (  # objects but DontCare
     ("truncation must be in [0, 1]", lambda lab: (lab.truncated >= 0) & (lab.truncated <= 1),
      lambda lab, i: f"{lab.truncated[i]:g}"),
     ("occlusion must be 0, 1, 2 or 3", lambda lab: (lab.occluded >= 0) & (lab.occluded <= 3),
@@ -109,15 +114,15 @@ def check_ground_truth(path: Path, labels: Labels) -> None:
 
 
 def check_results(path: Path, labels: Labels) -> None:
-    """Refuse (KittiError naming the line) a result box with a size <= 0: its IoU with anything is
-    not an overlap."""
+    """Refuse (KittiError naming the line) a result box with a size <= 0 (its IoU with anything is
+    not an overlap) or an inverted 2D box (the KITTI difficulty reads its height)."""
     if not len(labels):
         return
-    bad = np.flatnonzero(~(labels.dimensions > 0).all(axis=1))
-    if len(bad):
-        lines = [no for no, line in enumerate(Path(path).read_text().splitlines(), start=1) if line.strip()]
-        sizes = " ".join(f"{v:g}" for v in labels.dimensions[bad[0]])
-        raise KittiError(path, f"box sizes (h w l) must be > 0, got {sizes}", lines[bad[0]])
+    for rule, ok, values in _BOX_RULES:
+        bad = np.flatnonzero(~ok(labels))
+        if len(bad):
+            lines = [no for no, line in enumerate(Path(path).read_text().splitlines(), start=1) if line.strip()]
+            raise KittiError(path, f"{rule}, got {values(labels, bad[0])}", lines[bad[0]])
 
 
 def recall_at_iou(gt: list[Labels], boxes: list[Labels], thresholds=RECALL_THRESHOLDS, frames=None) -> dict:

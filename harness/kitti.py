@@ -137,6 +137,11 @@ def read_points(path) -> np.ndarray:
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         raise KittiError(path, f"{int(bad.sum())} points contain NaN or inf (first at point {int(np.argmax(bad))})")
+    bad = (np.abs(points) > MAX_POINT_VALUE).any(axis=1)
+    if bad.any():  # sums over such values overflow float32 inside a network: boxes vanish without an error
+        i = int(np.argmax(bad))
+        raise KittiError(path, f"{int(bad.sum())} points hold a value beyond +-{MAX_POINT_VALUE:g} (first: point {i}, "
+                               f"{' '.join(f'{v:g}' for v in points[i])}): not metres and a LiDAR intensity")
     return points
 
 
@@ -153,6 +158,8 @@ def write_points(path, points: np.ndarray) -> Path:
 _CALIB_SHAPES = {"P0": (3, 4), "P1": (3, 4), "P2": (3, 4), "P3": (3, 4), "R0_rect": (3, 3),
                  "Tr_velo_to_cam": (3, 4), "Tr_imu_to_velo": (3, 4)}
 _CALIB_REQUIRED = ("P2", "R0_rect", "Tr_velo_to_cam")
+MAX_POINT_VALUE = 1e6  # |x|, |y|, |z| in metres and |intensity| of any real scan are far below it
+ROTATION_TOLERANCE = 1e-3  # max |R^T R - I| of a calib's rotation (KITTI's own files: about 1e-6)
 
 
 def _hom(m: np.ndarray) -> np.ndarray:
@@ -252,6 +259,12 @@ def read_calib(path) -> Calib:
         if rank < 3:
             raise KittiError(path, f"{key}: singular (its 3x3 part has rank {rank}), so it maps points onto a "
                                    f"{'plane' if rank == 2 else 'line or point'}")
+    for key in ("R0_rect", "Tr_velo_to_cam"):  # rigid: a rotation (KITTI's to ~1e-6), no scale
+        r = values[key][:, :3]
+        off = float(np.abs(r.T @ r - np.eye(3)).max())
+        if off > ROTATION_TOLERANCE:
+            raise KittiError(path, f"{key}: its 3x3 part is not a rotation (R^T R differs from the identity by up to "
+                                   f"{off:.3g}), so it would scale or shear every box")
     return Calib(**values)
 
 

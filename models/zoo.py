@@ -155,6 +155,11 @@ def _refuse_non_finite(path: Path, state_dict) -> None:
     if bad:
         raise CheckpointError(f"{path}: {len(bad)} of its {len(state_dict)} tensors hold NaN or inf (first: {bad[0]}); "
                               "the training that wrote it diverged")
+    negative = [n for n, t in state_dict.items() if n.endswith("running_var") and isinstance(t, torch.Tensor)
+                and (t < 0).any()]
+    if negative:  # its square root is NaN at inference: every box of the network vanishes
+        raise CheckpointError(f"{path}: the BatchNorm variance {negative[0]} holds negative values; no training "
+                              "writes that")
 
 
 def load_checkpoint(path) -> tuple[Detector, dict]:

@@ -219,3 +219,19 @@ def test_a_result_box_with_a_size_of_zero_or_less_is_refused_naming_its_line(tmp
     path.write_text("\n".join([lines[0], " ".join(fields), *lines[2:]]) + "\n")
     with pytest.raises(kitti.KittiError, match=r"000002\.txt:2: box sizes \(h w l\) must be > 0, got -1\.5 "):
         evaluate(dataset, pred)
+
+
+@pytest.mark.parametrize("folder", ["labels", "predictions"])
+def test_an_inverted_2d_box_is_refused_naming_its_line(tmp_path, dataset, folder):
+    pred = copy_as_predictions(dataset, tmp_path / "pred")
+    labels = tmp_path / "labels"
+    shutil.copytree(dataset / "training" / "label_2", labels)
+    path = (labels if folder == "labels" else pred) / "000001.txt"
+    lines = path.read_text().splitlines()
+    fields = lines[0].split()
+    fields[5], fields[7] = fields[7], fields[5]  # y1 <-> y2
+    assert float(fields[5]) > float(fields[7])
+    path.write_text("\n".join([" ".join(fields), *lines[1:]]) + "\n")
+    with pytest.raises(kitti.KittiError, match=r"000001\.txt:1: the 2D box \(x1 y1 x2 y2\) must have x1 <= x2 and "
+                                               r"y1 <= y2"):
+        evaluate(labels, pred)

@@ -25,6 +25,16 @@ def test_points_round_trip_and_errors(tmp_path):
     assert kitti.read_points(kitti.write_points(tmp_path / "e.bin", np.zeros((0, 4)))).shape == (0, 4)
 
 
+def test_a_scan_with_values_no_lidar_gives_is_refused(tmp_path):
+    pts = np.random.default_rng(0).uniform(-50, 50, (100, 4)).astype(np.float32)
+    kitti.write_points(tmp_path / "ok.bin", pts)
+    np.testing.assert_array_equal(kitti.read_points(tmp_path / "ok.bin"), pts)
+    pts[[7, 9], 3] = 3e38  # finite intensities whose sums overflow float32
+    pts.tofile(tmp_path / "big.bin")
+    with pytest.raises(KittiError, match=r"big\.bin: 2 points hold a value beyond \+-1e\+06 \(first: point 7, "):
+        kitti.read_points(tmp_path / "big.bin")
+
+
 def test_calib_round_trip_and_projection(tmp_path):
     calib = kitti.kitti_calib()
     p = kitti.write_calib(tmp_path / "c.txt", calib)
@@ -64,6 +74,22 @@ def test_a_singular_calibration_is_refused_naming_the_matrix(tmp_path, key, rank
     kitti.write_calib(tmp_path / "c.txt", kitti.Calib(**{**calib.__dict__, key: m}))
     with pytest.raises(KittiError, match=rf"c\.txt: {key}: singular \(its 3x3 part has rank {rank}\)"):
         kitti.read_calib(tmp_path / "c.txt")
+
+
+@pytest.mark.parametrize("key,scale", [("R0_rect", 2.0), ("R0_rect", 1e-9), ("Tr_velo_to_cam", 1.01)])
+def test_a_calibration_rotation_that_scales_is_refused(tmp_path, key, scale):
+    calib = kitti.kitti_calib()
+    m = np.array(getattr(calib, key), dtype=np.float64)
+    m[:, :3] *= scale
+    off = np.abs(m[:, :3].T @ m[:, :3] - np.eye(3)).max()  # by hand: |scale^2 - 1| on the diagonal
+    assert off == pytest.approx(abs(scale ** 2 - 1))
+    kitti.write_calib(tmp_path / "c.txt", kitti.Calib(**{**calib.__dict__, key: m}))
+    with pytest.raises(KittiError, match=rf"c\.txt: {key}: its 3x3 part is not a rotation"):
+        kitti.read_calib(tmp_path / "c.txt")
+    r = np.array([[9.999239e-01, 9.837760e-03, -7.445048e-03], [-9.869795e-03, 9.999421e-01, -4.278459e-03],
+                  [7.402527e-03, 4.351614e-03, 9.999631e-01]])  # KITTI's 000000 R0_rect, 7 digits: accepted
+    kitti.write_calib(tmp_path / "k.txt", kitti.Calib(**{**calib.__dict__, "R0_rect": r}))
+    np.testing.assert_allclose(kitti.read_calib(tmp_path / "k.txt").R0_rect, r)
 
 
 def test_an_image_must_hold_its_calibrations_principal_point(tmp_path):

@@ -56,6 +56,11 @@ def test_weights_with_nan_or_inf_and_configs_that_build_no_network_are_refused(t
         zoo.load_checkpoint(tmp_path / "nan.pt")
     with pytest.raises(zoo.CheckpointError, match=message):  # nor does it start another training
         zoo.warm_start(zoo.build("pointpillars", "tiny"), "pointpillars", tmp_path / "nan.pt")
+    var = next(n for n in state if n.endswith("running_var"))
+    torch.save({"model": "pointpillars", "profile": "tiny",
+                "state_dict": {**state, var: state[var].clone().fill_(-5.0)}}, tmp_path / "var.pt")
+    with pytest.raises(zoo.CheckpointError, match=rf"var\.pt: the BatchNorm variance {var} holds negative values"):
+        zoo.load_checkpoint(tmp_path / "var.pt")
     cfg = dataclasses.asdict(zoo.config("pointpillars", "tiny")) | {"voxel_size": (-0.5, 0.5, 4.0)}
     torch.save({"model": "pointpillars", "profile": "tiny", "config": cfg, "state_dict": state}, tmp_path / "cfg.pt")
     with pytest.raises(zoo.CheckpointError, match=r"cfg\.pt: its pointpillars/tiny config does not build the network"):
