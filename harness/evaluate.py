@@ -174,9 +174,9 @@ def _recalls(gt, preds: dict, frames=None) -> dict:
 
 def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, meta_path, column: str, n_boot: int,
                 seed: int) -> dict:
-    if column not in meta.columns:
-        raise KittiError(meta_path, f"--group-by {column!r}: no such column "
-                                    f"(columns: {', '.join(map(str, meta.columns))})")
+    if column not in meta.columns or column == "frame_id":  # frame_id: one group per frame, no AP to speak of
+        raise KittiError(meta_path, f"--group-by {column!r}: no such condition column "
+                                    f"(columns: {', '.join(str(c) for c in meta.columns if c != 'frame_id')})")
     by_id = meta.set_index("frame_id")[column]
     keys = [i.zfill(6) for i in ids]  # the table's ids are zero-padded to KITTI's six digits
     missing = [i for i, k in zip(ids, keys) if k not in by_id.index]

@@ -235,3 +235,11 @@ def test_an_inverted_2d_box_is_refused_naming_its_line(tmp_path, dataset, folder
     with pytest.raises(kitti.KittiError, match=r"000001\.txt:1: the 2D box \(x1 y1 x2 y2\) must have x1 <= x2 and "
                                                r"y1 <= y2"):
         evaluate(labels, pred)
+
+
+@pytest.mark.parametrize("column", ["frame_id", "sky"])
+def test_group_by_a_column_that_names_no_condition_is_refused(tmp_path, dataset, column):
+    pred = copy_as_predictions(dataset, tmp_path / "pred")
+    with pytest.raises(kitti.KittiError, match=rf"frames\.csv: --group-by '{column}': no such condition column "
+                                               r"\(columns: split, weather\)"):
+        evaluate(dataset, pred, group_by=column, meta=dataset / "meta" / "frames.csv")
