@@ -190,6 +190,8 @@ def _first_foreign_file(root: Path, frame_ids: set[str]) -> Path | None:
     """A file in ``root`` that a generation of ``frame_ids`` cut short before its first frame record
     cannot have left (it leaves only the files of its frames, temp files included, and meta/frames/)."""
     for top in sorted(root.iterdir()):
+        if top.name == ".lock" and top.is_file():  # a simulate's folder lock
+            continue
         if top.name not in ("meta", "training") or top.is_symlink() or not top.is_dir():
             return top
     for path in sorted(root.rglob("*")):
@@ -300,7 +302,14 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     jobs = [(root, cfg, job, digest) for job in plan_jobs(cfg)]
     check_output(root, cfg, {job.frame_id for _, _, job, _ in jobs}, force)
     (root / "meta" / "frames").mkdir(parents=True, exist_ok=True)
-    remove_stale_frames(root, {job.frame_id for _, _, job, _ in jobs})
+    with kitti.folder_lock(root, "simulate"):  # one simulate per folder: the temp files below are its own
+        kitti.remove_temp_files(root)  # those a killed simulate left
+        remove_stale_frames(root, {job.frame_id for _, _, job, _ in jobs})
+        _simulate_frames(root, cfg, preset, jobs, workers, progress)
+    return root
+
+
+def _simulate_frames(root: Path, cfg: GenerateConfig, preset: str, jobs: list, workers: int, progress: bool) -> None:
     bar = tqdm(total=len(jobs), desc=f"simulate {preset}", unit="frame", disable=not progress)
     records = []
     if workers == 1:
@@ -316,4 +325,3 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
                 bar.update()
     bar.close()
     _write_outputs(root, cfg, records)
-    return root

@@ -210,3 +210,19 @@ def test_carla_mode_scans_do_not_depend_on_weather(tmp_path):
     a, b = (kitti.frame_path(out, "velodyne", f).read_bytes() for f in ("000000", "000001"))
     assert a == b and len(a) > 0
     assert kitti.frame_path(out, "image_2", "000000").read_bytes() != kitti.frame_path(out, "image_2", "000001").read_bytes()
+
+
+def test_a_resumed_simulation_removes_the_temp_files_a_kill_left(tmp_path):
+    from harness.kitti import folder_lock
+    from simulator.dataset import generate
+    out = generate(tmp_path / "d", preset="train", frames=2, seed=3, progress=False)
+    scan = out / "training" / "velodyne" / "000001.bin"
+    stale = scan.parent / ".000001.bin.7eif5tqt.tmp"  # a write cut off by Ctrl-C
+    stale.write_bytes(scan.read_bytes()[:100])
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file() and p != stale}
+    generate(out, preset="train", frames=2, seed=3, progress=False)
+    assert not stale.exists()
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    with folder_lock(out, "simulate"):  # another simulate is writing there
+        with pytest.raises(ValueError, match=r"d: another sotif-bench simulate is writing to this folder"):
+            generate(out, preset="train", frames=2, seed=3, progress=False)
