@@ -7,6 +7,7 @@ so a failed copy leaves the previous sample as it was.
 """
 from __future__ import annotations
 
+import json
 import shutil
 import tempfile
 from pathlib import Path
@@ -16,6 +17,7 @@ from harness.tables import _read_json
 
 SAMPLE_PATTERNS = ("report.md", "index.html", "tables/*.csv", "figures/*.png")
 SAMPLE_DIRS = {Path(p).parent for p in SAMPLE_PATTERNS} - {Path(".")}
+MANIFEST = ".sample.json"  # the files a sample holds, written with it: what replacing it may delete
 
 
 def sample_files(run_dir: Path) -> list[Path]:
@@ -23,11 +25,23 @@ def sample_files(run_dir: Path) -> list[Path]:
     return sorted(p.relative_to(run_dir) for pattern in SAMPLE_PATTERNS for p in run_dir.glob(pattern) if p.is_file())
 
 
-def _foreign_entry(folder: Path) -> Path | None:
-    """The first entry of ``folder`` that a sample does not hold (a symbolic link counts as foreign), or None
-    when ``folder`` is a previous sample or empty: replacing it then deletes nothing else."""
-    expected = set(sample_files(folder))
-    for p in folder.rglob("*"):
+def _foreign_entry(folder: Path, new_files: list[Path]) -> Path | None:
+    """The first entry of ``folder`` that replacing it with a sample of ``new_files`` would delete
+    without having written it (a symbolic link counts as foreign), or None when ``folder`` is empty
+    or a previous sample. A sample lists its files in ``MANIFEST``; a folder without one (published
+    before it existed) passes only when it holds a report.md and an index.html and nothing but
+    files the new sample writes again."""
+    entries = sorted(folder.rglob("*"))
+    if not entries:
+        return None
+    try:
+        listed = json.loads((folder / MANIFEST).read_text())["files"]
+        expected = {Path(f) for f in listed} | {Path(MANIFEST)}
+    except (OSError, ValueError, KeyError, TypeError):
+        if not ((folder / "report.md").is_file() and (folder / "index.html").is_file()):
+            return entries[0].relative_to(folder)
+        expected = set(new_files)
+    for p in entries:
         rel = p.relative_to(folder)
         if p.is_symlink() or not (rel in expected or rel in SAMPLE_DIRS and p.is_dir()):
             return rel
@@ -47,7 +61,7 @@ def check_destination(run_dir, dest) -> None:
         raise ValueError(f"{dest}: holds the run folder {run_dir}; publishing the sample there would delete the run")
     if run in target.parents:
         raise ValueError(f"{dest}: the sample folder must lie outside the run folder {run_dir}")
-    foreign = _foreign_entry(dest) if dest.is_dir() else None
+    foreign = _foreign_entry(dest, sample_files(run_dir)) if dest.is_dir() else None
     if foreign is not None:
         raise ValueError(f"{dest}: is not empty and not a previous sample (it holds {foreign}, which a sample "
                          "does not); choose a new or empty folder")
@@ -74,6 +88,7 @@ def publish_sample(run_dir, dest) -> Path:
         for rel in files:
             (staging / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(run_dir / rel, staging / rel)
+        (staging / MANIFEST).write_text(json.dumps({"files": [str(f) for f in files]}, indent=1) + "\n")
         if dest.exists():
             old = dest.rename(dest.parent / f"{staging.name}.old")
         staging.rename(dest)

@@ -8,7 +8,7 @@ import pytest
 from harness import report
 from harness.cli import main
 from harness.kitti import KittiError
-from harness.sample import publish_sample, sample_files
+from harness.sample import MANIFEST, publish_sample, sample_files
 from tests.harness.test_report import make_run
 
 
@@ -26,7 +26,8 @@ def run_dir(tmp_path_factory):
 
 def test_sample_holds_the_report_tables_and_figures_only(run_dir, tmp_path):
     dest = publish_sample(run_dir, tmp_path / "sample")
-    names = {str(p.relative_to(dest)) for p in dest.rglob("*") if p.is_file()}
+    names = {str(p.relative_to(dest)) for p in dest.rglob("*") if p.is_file()} - {MANIFEST}
+    assert json.loads((dest / MANIFEST).read_text())["files"] == sorted(names)  # what a later publish may replace
     assert {"report.md", "index.html", "tables/weather_headline.csv", "figures/heatmap.png"} <= names
     assert all(n in ("report.md", "index.html") or n.startswith(("tables/", "figures/")) for n in names)
     assert not any(n.endswith((".onnx", ".pt", ".json", ".txt")) for n in names)
@@ -49,10 +50,16 @@ def test_sample_numbers_are_the_runs_results(run_dir, tmp_path):
             assert f"{row['headline']['3d']['0.7']:.1f} [" in md
 
 
+def _older_sample_with(dest: Path, rel: str) -> None:
+    """Make the sample in ``dest`` one whose run also wrote ``rel`` (a table or figure this run has not)."""
+    (dest / rel).write_text("old")
+    manifest = json.loads((dest / MANIFEST).read_text())
+    (dest / MANIFEST).write_text(json.dumps({"files": sorted(manifest["files"] + [rel])}))
+
+
 def test_a_new_sample_replaces_the_old_one(run_dir, tmp_path):
-    dest = tmp_path / "sample"
-    (dest / "tables").mkdir(parents=True)
-    (dest / "tables" / "stale.csv").write_text("old")
+    dest = publish_sample(run_dir, tmp_path / "sample")
+    _older_sample_with(dest, "tables/stale.csv")
     publish_sample(run_dir, dest)
     assert not (dest / "tables" / "stale.csv").exists() and (dest / "report.md").is_file()
     assert [p.name for p in tmp_path.iterdir()] == ["sample"]  # no temp folder left
@@ -122,10 +129,32 @@ def test_a_new_or_empty_folder_becomes_the_sample(run_dir, tmp_path, exists):
 
 def test_a_previous_sample_is_replaced_whole(run_dir, tmp_path):
     dest = publish_sample(run_dir, tmp_path / "sample")
-    (dest / "figures" / "gone.png").write_bytes(b"old figure")
+    _older_sample_with(dest, "figures/gone.png")
     (dest / "tables" / "kitti_ap.csv").write_text("old")
     (dest / "report.md").unlink()  # a partial sample is a sample still
     assert main(["--quiet", "report", str(run_dir), "--sample", str(dest)]) == 0
     assert sorted(map(str, (p.relative_to(dest) for p in dest.rglob("*") if p.is_file()))) == \
-        sorted(map(str, sample_files(run_dir)))
+        sorted(map(str, sample_files(run_dir) + [Path(MANIFEST)]))
     assert (dest / "tables" / "kitti_ap.csv").read_bytes() == (run_dir / "tables" / "kitti_ap.csv").read_bytes()
+
+
+@pytest.mark.parametrize("rel", ["tables/mine.csv", "figures/photo.png"])
+def test_a_file_a_sample_did_not_write_is_never_deleted(run_dir, tmp_path, rel):
+    dest = publish_sample(run_dir, tmp_path / "sample")
+    (dest / rel).write_text("mine")
+    with pytest.raises(ValueError, match=rf"sample: is not empty and not a previous sample \(it holds {rel}"):
+        publish_sample(run_dir, dest)
+    assert (dest / rel).read_text() == "mine"
+
+
+def test_a_folder_published_before_the_manifest_is_replaced_only_when_it_holds_sample_files(run_dir, tmp_path):
+    legacy = publish_sample(run_dir, tmp_path / "legacy")
+    (legacy / MANIFEST).unlink()  # as the repository's sample was published
+    publish_sample(run_dir, legacy)
+    assert (legacy / MANIFEST).is_file()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "report.md").write_text("my report")  # a report.md but no index.html: not a sample
+    with pytest.raises(ValueError, match=r"mine: is not empty and not a previous sample \(it holds report\.md"):
+        publish_sample(run_dir, mine)
+    assert (mine / "report.md").read_text() == "my report"
