@@ -410,8 +410,8 @@ def _refuse_unrecorded_results(out: Path) -> None:
 
 def _read_journal(path: Path) -> dict[str, dict]:
     """``predict``'s per-frame record (``out/.frames.jsonl``: one JSON line per predicted frame,
-    appended after its result files): frame id -> latency and point count. A line cut off by a
-    kill is skipped; that frame keeps its results and has no timing."""
+    appended before its result files are written): frame id -> latency and point count. A line
+    cut off by a kill is skipped; that frame has no result file yet and is predicted again."""
     rows = {}
     if path.is_file():
         for line in path.read_text().splitlines():
@@ -432,9 +432,15 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
             same = json.loads(progress_file.read_text()) == stamp
         except ValueError:
             same = False
-        if not same:
+        if not same:  # results of another model, runtime, split or data set: start over
+            recorded = set(_read_journal(journal))  # frames the earlier predict wrote (recorded before their files)
+            foreign = [p for p in _result_files(out) if p.stem not in recorded]
+            if foreign:
+                raise ValueError(f"{out}: holds result files ({foreign[0].relative_to(out)}, ...) that the earlier "
+                                 "'sotif-bench predict' into this folder did not write; remove them or choose "
+                                 "another --out")
             for old in _result_files(out):
-                old.unlink()  # results of another model, runtime, split or data set: start over
+                old.unlink()
             journal.unlink(missing_ok=True)
     else:
         _refuse_unrecorded_results(out)
@@ -456,14 +462,15 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
                 ms = 1000 * (time.perf_counter() - t0)
             except ValueError as e:  # the model failed on this frame: name the frame's scan as well
                 raise ValueError(f"{e} (frame {fid}: {frame_path(data, 'velodyne', fid)})") from e
+            # recorded before its files, so that every result file here is one predict wrote
+            record.write(json.dumps({"frame_id": fid, "latency_ms": ms, "n_points": len(points)}).encode() + b"\n")
+            record.flush()
             if det.info.two_stage:
                 write_labels(out / "rois" / f"{fid}.txt", boxes_to_results(res["rois"], res["roi_scores"], calib, hw))
                 if "rcnn_boxes" in res:
                     write_labels(out / "rcnn" / f"{fid}.txt",
                                  boxes_to_results(res["rcnn_boxes"], res["roi_scores"], calib, hw))
             write_labels(out / f"{fid}.txt", boxes_to_results(res["boxes"], res["scores"], calib, hw))
-            record.write(json.dumps({"frame_id": fid, "latency_ms": ms, "n_points": len(points)}).encode() + b"\n")
-            record.flush()
             ran = True
     # the timings of every session that predicted frames of this folder, in the split's order
     rows = _read_journal(journal)

@@ -233,6 +233,12 @@ def test_predict_into_a_folder_of_other_results(make_onnx, tmp_path, dataset):
         with pytest.raises(ValueError, match=r"pred: another sotif-bench predict is writing to this folder"):
             predict(onnx_path, dataset, out, progress=False)
 
+    (out / "000999.txt").write_text("Car 0 0 0 1 1 2 2 1.5 1.6 4 0 1.6 20 0 0.99\n")  # not predict's
+    with pytest.raises(ValueError, match=r"pred: holds result files \(000999\.txt, \.\.\.\) that the earlier "):
+        # a new request (the split as a file): the earlier results would go, this one is no result of theirs
+        predict(onnx_path, dataset, out, split=dataset / "ImageSets" / "test.txt", progress=False)
+    assert (out / "000999.txt").is_file() and (out / "000000.txt").is_file()
+
     foreign = tmp_path / "foreign"
     foreign.mkdir()
     (foreign / "000001.txt").write_text("Car 0 0 0 0 0 10 10 1.5 1.6 3.9 0 1.6 20 0 0.5\n")
