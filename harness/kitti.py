@@ -416,6 +416,8 @@ def read_image(path) -> np.ndarray:
     path = Path(path)
     try:
         with Image.open(path) as im:
+            if im.mode not in ("RGB", "RGBA", "L", "P", "LA", "CMYK", "YCbCr"):  # 16-bit / float: clipped to white
+                raise KittiError(path, f"a {im.mode} image; expected 8 bits per channel (RGB or grey)")
             return np.asarray(im.convert("RGB"))
     except FileNotFoundError:
         raise KittiError(path, "file not found") from None

@@ -105,6 +105,10 @@ def test_an_image_must_hold_its_calibrations_principal_point(tmp_path):
         kitti.image_size(tmp_path / "x.png")
     kitti.write_image(tmp_path / "ok.png", np.zeros((20, 50, 3), np.uint8))
     assert kitti.image_size(tmp_path / "ok.png") == (20, 50)
+    from PIL import Image
+    Image.fromarray(np.full((20, 50), 40000, np.uint16)).save(tmp_path / "deep.png")  # PIL reads it as mode I;16
+    with pytest.raises(KittiError, match=r"deep\.png: a I;16 image; expected 8 bits per channel"):
+        kitti.read_image(tmp_path / "deep.png")
 
 
 def test_labels_lidar_camera_round_trip(tmp_path):
