@@ -47,16 +47,19 @@ def _path(text: str) -> str:
     return text
 
 
+def _file_above(path: Path) -> Path | None:
+    """The nearest existing parent of ``path`` when it is a file (so ``path`` cannot be made), else None."""
+    parent = next((p for p in path.parents if p.exists()), None)
+    return parent if parent is not None and not parent.is_dir() else None
+
+
 def _folder(text: str) -> str:
     """An output folder: a path that is not a file and has no file among its parents."""
     path = Path(_path(text))
     if path.exists() and not path.is_dir():
         raise argparse.ArgumentTypeError(f"{path}: is a file, expected a folder")
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise argparse.ArgumentTypeError(f"{parent}: is a file, so the folder {path} cannot be made")
-            break
+    if (above := _file_above(path)) is not None:
+        raise argparse.ArgumentTypeError(f"{above}: is a file, so the folder {path} cannot be made")
     return text
 
 
@@ -66,11 +69,8 @@ def _output_file(text: str) -> Path:
     path = Path(text)
     if path.is_dir():
         raise ValueError(f"{path}: is a folder; expected a file path")
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise ValueError(f"{parent}: is a file, so {path} cannot be written")
-            break
+    if (above := _file_above(path)) is not None:
+        raise ValueError(f"{above}: is a file, so {path} cannot be written")
     return path
 
 

@@ -96,33 +96,35 @@ _GT_RULES = _BOX_RULES + (  # objects but DontCare
      lambda lab, i: f"{lab.occluded[i]}"))
 
 
+def _refuse_broken_rows(path: Path, labels: Labels, rules, rows: np.ndarray) -> None:
+    """KittiError naming the line of the first of ``rows`` that breaks one of ``rules``."""
+    for rule, ok, values in rules:
+        bad = np.flatnonzero(rows & ~ok(labels))
+        if len(bad):
+            raise KittiError(path, f"{rule}, got {values(labels, bad[0])}", _line_of(path, bad[0]))
+
+
+def _line_of(path: Path, row: int) -> int:
+    """The 1-based line of a label file that holds its ``row``-th object (blank lines skipped)."""
+    return [no for no, line in enumerate(Path(path).read_text().splitlines(), start=1) if line.strip()][row]
+
+
 def check_ground_truth(path: Path, labels: Labels) -> None:
     """Refuse (KittiError naming the line) a label file that is no ground truth: lines with a score
     (a result file: label and prediction folders swapped?), or an object other than DontCare with a
-    size <= 0, a truncation outside [0, 1] or an occlusion outside 0..3."""
+    size <= 0, an inverted 2D box, a truncation outside [0, 1] or an occlusion outside 0..3."""
     if not len(labels):
         return
-    lines = [no for no, line in enumerate(Path(path).read_text().splitlines(), start=1) if line.strip()]
     if labels.score is not None:
         raise KittiError(path, "has a score (16th field), as a prediction file does: is it a prediction folder "
-                               "(--labels and --predictions swapped)?", lines[0])
-    care = np.asarray(labels.name, dtype=str) != "DontCare"
-    for rule, ok, values in _GT_RULES:
-        bad = np.flatnonzero(care & ~ok(labels))
-        if len(bad):
-            raise KittiError(path, f"{rule}, got {values(labels, bad[0])}", lines[bad[0]])
+                               "(--labels and --predictions swapped)?", _line_of(path, 0))
+    _refuse_broken_rows(path, labels, _GT_RULES, np.asarray(labels.name, dtype=str) != "DontCare")
 
 
 def check_results(path: Path, labels: Labels) -> None:
     """Refuse (KittiError naming the line) a result box with a size <= 0 (its IoU with anything is
     not an overlap) or an inverted 2D box (the KITTI difficulty reads its height)."""
-    if not len(labels):
-        return
-    for rule, ok, values in _BOX_RULES:
-        bad = np.flatnonzero(~ok(labels))
-        if len(bad):
-            lines = [no for no, line in enumerate(Path(path).read_text().splitlines(), start=1) if line.strip()]
-            raise KittiError(path, f"{rule}, got {values(labels, bad[0])}", lines[bad[0]])
+    _refuse_broken_rows(path, labels, _BOX_RULES, np.ones(len(labels), dtype=bool))
 
 
 def recall_at_iou(gt: list[Labels], boxes: list[Labels], thresholds=RECALL_THRESHOLDS, frames=None) -> dict:

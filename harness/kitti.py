@@ -411,30 +411,31 @@ def write_labels(path, labels: Labels) -> Path:
 
 
 # ----------------------------------------------------------------------------- images
-def read_image(path) -> np.ndarray:
-    """(H, W, 3) uint8 RGB."""
-    path = Path(path)
+@contextmanager
+def _opened_image(path: Path):
+    """The image at ``path`` opened with PIL, its errors as KittiErrors naming it."""
     try:
         with Image.open(path) as im:
-            if im.mode not in ("RGB", "RGBA", "L", "P", "LA", "CMYK", "YCbCr"):  # 16-bit / float: clipped to white
-                raise KittiError(path, f"a {im.mode} image; expected 8 bits per channel (RGB or grey)")
-            return np.asarray(im.convert("RGB"))
+            yield im
     except FileNotFoundError:
         raise KittiError(path, "file not found") from None
     except (OSError, SyntaxError) as e:
         raise KittiError(path, f"not a readable image ({e})") from None
+
+
+def read_image(path) -> np.ndarray:
+    """(H, W, 3) uint8 RGB."""
+    path = Path(path)
+    with _opened_image(path) as im:
+        if im.mode not in ("RGB", "RGBA", "L", "P", "LA", "CMYK", "YCbCr"):  # 16-bit / float: clipped to white
+            raise KittiError(path, f"a {im.mode} image; expected 8 bits per channel (RGB or grey)")
+        return np.asarray(im.convert("RGB"))
 
 
 def image_size(path) -> tuple[int, int]:
     """(H, W) of an image file, read from its header."""
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            return im.height, im.width
-    except FileNotFoundError:
-        raise KittiError(path, "file not found") from None
-    except (OSError, SyntaxError) as e:
-        raise KittiError(path, f"not a readable image ({e})") from None
+    with _opened_image(Path(path)) as im:
+        return im.height, im.width
 
 
 def check_image_fits_calib(path, hw: tuple[int, int], calib: "Calib", calib_path) -> None:

@@ -145,9 +145,9 @@ def detector_class(name: str) -> type:
                 and c.__dict__.get("architecture") == name)
 
 
-def _refuse_non_finite(path: Path, state_dict) -> None:
-    """A checkpoint whose weights hold NaN or inf (a diverged training) is refused: every box of
-    such a network is NaN, or none is made."""
+def _refuse_broken_weights(path: Path, state_dict) -> None:
+    """A checkpoint whose weights hold NaN or inf (a diverged training) or a negative BatchNorm
+    variance is refused: every box of such a network is NaN, or none is made."""
     if not isinstance(state_dict, dict):
         raise CheckpointError(f"{path}: state_dict is a {type(state_dict).__name__}, not a mapping of tensors")
     bad = [n for n, t in state_dict.items()
@@ -187,7 +187,7 @@ def load_checkpoint(path) -> tuple[Detector, dict]:
     except (ValueError, TypeError, RuntimeError, ZeroDivisionError) as exc:  # a config no training writes
         raise CheckpointError(f"{path}: its {ckpt['model']}/{ckpt['profile']} config does not build the network "
                               f"({str(exc).splitlines()[0][:200]})") from None
-    _refuse_non_finite(path, ckpt["state_dict"])
+    _refuse_broken_weights(path, ckpt["state_dict"])
     try:
         model.load_state_dict(ckpt["state_dict"])
     except RuntimeError as exc:
@@ -228,7 +228,7 @@ def warm_start(net: torch.nn.Module, model: str, path) -> tuple[list[str], list[
     if "state_dict" not in ckpt:
         raise CheckpointError(f"{path}: checkpoint lacks state_dict")
     source = ckpt["state_dict"]
-    _refuse_non_finite(path, source)
+    _refuse_broken_weights(path, source)
     own = net.state_dict()
     take, loaded, kept = {}, [], []
     for name, tensor in own.items():

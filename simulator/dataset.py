@@ -300,11 +300,12 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     root = Path(out)
     digest = cfg.digest()
     jobs = [(root, cfg, job, digest) for job in plan_jobs(cfg)]
-    check_output(root, cfg, {job.frame_id for _, _, job, _ in jobs}, force)
+    planned = {job.frame_id for _, _, job, _ in jobs}
+    check_output(root, cfg, planned, force)
     (root / "meta" / "frames").mkdir(parents=True, exist_ok=True)
     with kitti.folder_lock(root, "simulate"):  # one simulate per folder: the temp files below are its own
         kitti.remove_temp_files(root)  # those a killed simulate left
-        remove_stale_frames(root, {job.frame_id for _, _, job, _ in jobs})
+        remove_stale_frames(root, planned)
         _simulate_frames(root, cfg, preset, jobs, workers, progress)
     return root
 
