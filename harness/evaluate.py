@@ -14,8 +14,12 @@
   given boxes exceeds the threshold (micro-averaged over frames); ``roi`` only when the
   prediction folder has ``rois/``.
 - ``groups`` (with ``--group-by``): ``{"column": C, "rows": {value: {n_frames, n_car, headline,
-  headline_ci95 {3d, bev: [lo, hi]}, kitti_moderate {3d, bev} (AP40 @0.7), n_gt_kitti_moderate,
-  distance, n_gt, recall}}}``.
+  headline_ci95 {3d, bev: [lo, hi]}, ci_method, kitti_moderate {3d, bev} (AP40 @0.7), n_gt_kitti_moderate,
+  distance, n_gt, recall}}}``. A numeric column with more than ``harness.conditions.MAX_LEVELS``
+  distinct values (a swept condition) groups by quantile bins named "[lo, hi)". ``ci_method`` says
+  how ``headline_ci95`` was made: "bootstrap over instances (N instances, R resamples)" when the
+  data set's meta has ``instance_key`` (whole scenario instances resampled: the frames of one drive
+  are not independent), else "bootstrap over frames (R resamples)".
 - ``groups_by``: the same for every requested column (``run`` asks for weather, time of day and
   precipitation class).
 - ``pr_curve``: interpolated precision and recall at the 41 sample points of the headline 3D AP @0.7.
@@ -30,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from harness.conditions import MAX_LEVELS, condition_labels
 from harness.eval_kitti import DIFFICULTIES, Filter, ap_r40, build_eval_set, frame_overlaps, kitti_ap, precision_recall
 from harness.kitti import KittiError, Labels, atomic_write_text, read_frames_meta, read_image_set, read_labels
 
@@ -159,19 +164,45 @@ def _summary(es, frames=None) -> dict:
     return {"headline": head, "distance": dist, "n_gt": n_gt}
 
 
-def bootstrap_ci(es, frames, metric: str, n: int = 200, seed: int = 0, thr: float = 0.7) -> list[float]:
-    """95% percentile interval of the headline AP40 over frames resampled with replacement."""
+def cluster_resample(frames: np.ndarray, clusters: np.ndarray, rng) -> np.ndarray:
+    """``frames`` of as many clusters as there are, drawn with replacement: each drawn cluster brings all
+    of its frames (the resampling unit is the cluster, e.g. a scenario instance, not the frame)."""
+    keys, inverse = np.unique(clusters, return_inverse=True)
+    members = [frames[inverse == i] for i in range(len(keys))]
+    return np.concatenate([members[i] for i in rng.integers(0, len(keys), len(keys))])
+
+
+def bootstrap_ci(es, frames, metric: str, n: int = 200, seed: int = 0, thr: float = 0.7, clusters=None) -> list[float]:
+    """95% percentile interval of the headline AP40 over ``frames`` resampled with replacement, or, given
+    ``clusters`` (one key per frame, e.g. its scenario instance), over whole clusters resampled."""
     frames = np.asarray(frames)
     if len(frames) == 0:
         return [0.0, 0.0]
     rng = np.random.default_rng(seed)
-    vals = [ap_r40(precision_recall(es, metric, ALL_DISTANCES, thr, rng.choice(frames, len(frames)))["precision"])
-            for _ in range(n)]
+    draw = (lambda: rng.choice(frames, len(frames))) if clusters is None else \
+        (lambda: cluster_resample(frames, np.asarray(clusters), rng))
+    vals = [ap_r40(precision_recall(es, metric, ALL_DISTANCES, thr, draw())["precision"]) for _ in range(n)]
     return [float(np.percentile(vals, 2.5)), float(np.percentile(vals, 97.5))]
+
+
+def ci_method(clusters, n_boot: int) -> str:
+    """How an interval was made, for results.json and the report."""
+    if clusters is None:
+        return f"bootstrap over frames ({n_boot} resamples)"
+    return f"bootstrap over instances ({len(set(clusters))} instances, {n_boot} resamples)"
 
 
 def _recalls(gt, preds: dict, frames=None) -> dict:
     return {stage: recall_at_iou(gt, boxes, frames=frames) for stage, boxes in preds.items()}
+
+
+def _grouping(values: np.ndarray) -> np.ndarray:
+    """A numeric column with many values (a swept condition) grouped by quantile bins, any other as is
+    (``harness.conditions``)."""
+    series = pd.Series(values)
+    if pd.api.types.is_numeric_dtype(series) and series.nunique() > MAX_LEVELS:
+        return condition_labels(series).to_numpy()
+    return values
 
 
 def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, meta_path, column: str, n_boot: int,
@@ -189,15 +220,20 @@ def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, meta_path, column:
     if empty:
         raise KittiError(meta_path, f"column {column!r} is empty for {len(empty)} frames of the split "
                                     f"(first: {empty[0]})")
+    values = _grouping(values)
+    instances = meta.set_index("frame_id")["instance_key"].loc[keys].astype(str).to_numpy() \
+        if "instance_key" in meta.columns else None  # (F,) the resampling unit of the intervals
     rows = {}
     for value in pd.unique(values):
         frames = np.flatnonzero(values == value)
+        clusters = None if instances is None else instances[frames]
         m = kitti_ap(es, filters=DIFFICULTIES[1:2], overlaps={"0.7": {"bbox": 0.7, "bev": 0.7, "3d": 0.7}}, frames=frames)
         rows[str(value)] = {
             "n_frames": int(len(frames)),
             "n_car": int(sum((np.asarray(gt[i].name, dtype=str) == "Car").sum() for i in frames)),
             **_summary(es, frames),
-            "headline_ci95": {k: bootstrap_ci(es, frames, k, n_boot, seed) for k in ("3d", "bev")},
+            "headline_ci95": {k: bootstrap_ci(es, frames, k, n_boot, seed, clusters=clusters) for k in ("3d", "bev")},
+            "ci_method": ci_method(clusters, n_boot),
             "kitti_moderate": {k: m[k]["0.7"]["R40"]["moderate"] for k in ("3d", "bev")},
             "n_gt_kitti_moderate": precision_recall(es, "3d", DIFFICULTIES[1], 0.7, frames)["num_gt"],
             "recall": _recalls(gt, stage_boxes, frames),

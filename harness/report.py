@@ -18,7 +18,7 @@ import pandas as pd
 from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
-from harness import figures, sotif, tables
+from harness import figures, report_space, sotif, tables
 from harness.kitti import atomic_write_bytes, atomic_write_text
 
 TEMPLATES = Path(__file__).parent / "templates"
@@ -45,6 +45,7 @@ HOW_TO_READ = {  # one sentence opening each section: how to read it
     "data": "Fewer points and a shorter mean range show how much a preset took from the sensor before any "
             "detector ran.",
     "stages": "Use it to see where the run's time went.",
+    "sotif_space": report_space.HOW_TO_READ,
     "draws": "A difference between two models means something only where it is larger than each model's range "
              "over its training draws, and that range is often wider than the bootstrap interval over frames.",
 }
@@ -131,7 +132,7 @@ def _figure_specs(run: tables.Run, t: dict) -> dict:
             specs["bev"] = ("Bird's-eye view of one test frame per weather (the first after the lane change): points, "
                             "ground truth (green), each model's detections above its operating threshold (dashed).",
                             figures.bev_figure(frames, list(thr)))
-    return specs
+    return {**specs, **report_space.figure_specs(run.summary, t)}
 
 
 def _threshold(model: dict) -> float:
@@ -157,6 +158,25 @@ def _group_matrix(long: pd.DataFrame, column: str) -> pd.DataFrame:
     return m.rename_axis(column).reset_index() if not m.empty else m
 
 
+def _space_section(run: tables.Run, t: dict) -> list[Section]:
+    """"SOTIF over the scenario space" (``harness.report_space``), when the run has its results."""
+    if "sotif_instances" not in t:
+        return []
+    rates = t.get("sotif_pass_rates", pd.DataFrame())
+    weather = rates[rates["column"] == "weather"].drop(columns="column") if not rates.empty else rates
+    return [Section("sotif_space", "SOTIF over the scenario space", report_space.section_intro(run.summary, t),
+                    [("Pass rate per weather (95% Wilson interval over instances)", weather, 2),
+                     ("Triggering conditions: the swept condition bins with the lowest pass rate",
+                      t.get("triggering_conditions", pd.DataFrame()), 2),
+                     ("Expected calibration error per weather class", t.get("calibration", pd.DataFrame()), 3)],
+                    ["sotif_margins", *_boundary_names(run, t), "reliability"])]
+
+
+def _boundary_names(run: tables.Run, t: dict) -> list[str]:
+    b = t.get("sotif_boundary", pd.DataFrame())
+    return [f"boundary_{m}" for m in dict.fromkeys(b["model"])] if not b.empty else []
+
+
 def _sections(run: tables.Run, t: dict) -> list[Section]:
     models = run.models
     c = sotif.constants()
@@ -167,8 +187,8 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                      [("", t["draws"], 1)], [])] if "draws" in t else []
     return [
         Section("main", "Headline AP per weather preset",
-                "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% bootstrap intervals "
-                "over frames (the SOTIF targets are far and small, so KITTI's moderate/hard filters would ignore "
+                "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% intervals by "
+                f"{report_space.ci_method(run.results)} (the SOTIF targets are far and small, so KITTI's moderate/hard filters would ignore "
                 "most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"],
                 figures_first=True),
         *draws,
@@ -183,6 +203,7 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "closing speed dv from the lane change (the simulated ego brakes on ground truth), vs the stopping "
                 f"distance dv*{c['t_react_s']:g} s + dv^2/(2*{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m, "
                 "and the time after the lane change.", [("", t["sotif_matrix"], 1)], []),
+        *_space_section(run, t),
         Section("robustness", "Robustness",
                 "AP relative to each model's clean value (mean of ClearNoon and ClearSunset); mRR = mean relative "
                 "AP over the rain and wet presets (Robo3D); headline AP by time of day and precipitation class.",

@@ -57,7 +57,7 @@ _GROUP_ROW = {
     "n_frames": NUMBER, "n_car": NUMBER, "headline": {"3d": {"0.7": NUMBER, "0.5": NUMBER}, "bev": {"0.7": NUMBER}},
     "headline_ci95": {"3d": ListOf(NUMBER, 2)}, "kitti_moderate": {"3d": NUMBER, "bev": NUMBER},
     "distance": {"3d": {"0.7": _BINS}}, "recall": {"rcnn?": {"0.5?": NUMBER, "0.7?": NUMBER}},
-    "n_gt_kitti_moderate?": NUMBER, "n_gt?": {"0-30?": NUMBER, "30-50?": NUMBER, "50-80?": NUMBER},
+    "n_gt_kitti_moderate?": NUMBER, "ci_method?": TEXT, "n_gt?": {"0-30?": NUMBER, "30-50?": NUMBER, "50-80?": NUMBER},
 }
 _GROUPS = {"column?": TEXT, "rows": Each(_GROUP_ROW)}
 RESULTS = {
@@ -77,10 +77,15 @@ _RUNTIME = {
 }
 _SOTIF_ROW = {"threshold?": OPT, "distance_if_no_braking_m?": OPT, "stopping_distance_m?": OPT,
               "time_after_lane_change_s?": OPT}
+_SPACE = {"rule": {"k": NUMBER, "n": NUMBER, "latency_s": NUMBER},  # harness.sotif_space.instance_view
+          "instances": ListOf({"instance_key": TEXT, "weather": TEXT, "margin_m?": OPT, "n_frames": NUMBER}),
+          "frames": Each(ListOf(ANY))}
+_RELIABILITY = {"ece": OPT, "n": NUMBER,  # harness.calibration.reliability
+                "bins": {"count": ListOf(NUMBER), "confidence": ListOf(OPT), "accuracy": ListOf(OPT)}}
 _MODEL = {
     "results": TEXT, "size_mb?": OPT, "params?": OPT, "runtime?": _RUNTIME, "sotif?": Maybe(Each(_SOTIF_ROW)),
     "train?": Maybe({"seconds?": OPT, "epochs?": OPT, "val_ap?": Maybe({"3d_moderate?": OPT})}),
-    "provenance?": Maybe(Each(ANY)),
+    "provenance?": Maybe(Each(ANY)), "sotif_space?": Maybe(Each(_SPACE)), "calibration?": Maybe(Each(Each(_RELIABILITY))),
 }
 _DRAW = {"seed": ANY, "val_ap?": Maybe({"3d_moderate?": OPT}), "headline?": Maybe({"3d?": Maybe({"0.7?": OPT}),
                                                                                   "bev?": Maybe({"0.7?": OPT})})}

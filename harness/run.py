@@ -55,6 +55,8 @@ class RunConfig:
     lidar_model: str = "physics"
     seeds: int = 1  # training draws per model: seeds seed .. seed + seeds - 1
     warm_start: bool = True  # two-stage and fusion models start from their one-stage sibling (WARM_FROM)
+    sotif_instances: int | None = None  # scenario instances per weather of the SOTIF set; None: the study's one
+    sweep_instances: int | None = None  # instances of the weather sweep set (data/sweep); None: no sweep set
 
 
 # With ``warm_start``, these models' trainings start from the same draw of their sibling's
@@ -101,8 +103,11 @@ def _model_of(tag: str) -> str:
 
 
 PROFILES = {
-    "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3),
-    "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20),
+    "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3,
+                       sotif_instances=2, sweep_instances=3),
+    # instance counts: placeholders until the added simulate / predict / evaluate time is measured
+    "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20,
+                         sotif_instances=6, sweep_instances=60),
     # the references train every model from nothing: so does the full profile
     "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1,
                       warm_start=False),
@@ -124,22 +129,30 @@ DATA_PARTS = ("training/velodyne", "training/image_2", "training/calib", "traini
               "ImageSets", "meta")
 
 
+SIM_SEED_OFFSET = {"sotif": 0, "train": 1000, "sweep": 2000}  # each data set's simulation seed: run seed + offset
+
+
 def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
     """Simulate (or resume) a data set; returns the hash of its ``meta/dataset.json``, which lists the
     SHA-256 of every frame's files: the stages that read the data set key on it. A changed, truncated or
     missing file of the set is removed and the simulator makes its frame again (the same bytes: it seeds
-    every frame), so the stages after it redo nothing unless the data set's bytes differ."""
+    every frame), so the stages after it redo nothing unless the data set's bytes differ. The SOTIF and
+    sweep sets are drawn with ``cfg.sotif_instances`` / ``cfg.sweep_instances`` scenario instances (a
+    SOTIF set of None instances is the study's one instance per weather, keyed as it always was)."""
     from simulator import generate
-    frames = cfg.train_frames if preset == "train" else cfg.sotif_frames
-    seed = cfg.seed if preset == "sotif" else cfg.seed + 1000
+    frames = {"train": cfg.train_frames, "sotif": cfg.sotif_frames, "sweep": None}[preset]
+    instances = {"train": None, "sotif": cfg.sotif_instances, "sweep": cfg.sweep_instances}[preset]
+    seed = cfg.seed + SIM_SEED_OFFSET[preset]
     out = data_dir / preset
     from simulator.dataset import GENERATOR_VERSION
-    key = {"preset": preset, "frames": frames, "seed": seed, "lidar": cfg.lidar_model, "generator": GENERATOR_VERSION}
+    key = {"preset": preset, "frames": frames, "seed": seed, "lidar": cfg.lidar_model, "generator": GENERATOR_VERSION,
+           **({"instances": instances} if instances is not None else {})}
+    more = {"instances": instances} if instances is not None else {}
     # force: the folder is the run's own, and a changed key (e.g. another --lidar-model) simulates it
     # again over the data set of the old one; a partial one of the same key still resumes
     stages.run(f"simulate_{preset}", key, lambda: {"out": str(generate(
         out, preset=preset, frames=frames, seed=seed, workers=cfg.workers, lidar_model=cfg.lidar_model,
-        progress=stages.progress, force=True))}, outputs=[out / part for part in DATA_PARTS], by_stat=True)
+        progress=stages.progress, force=True, **more))}, outputs=[out / part for part in DATA_PARTS], by_stat=True)
     return file_digest(out / "meta" / "dataset.json")
 
 
@@ -190,7 +203,7 @@ def _checkpoint_meta(ckpt: Path) -> dict:
 
 
 def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str,
-                  threads: int | None = None) -> dict:
+                  threads: int | None = None, sweep_hash: str | None = None) -> dict:
     from harness.evaluate import EVALUATOR_VERSION, evaluate, write_results
     from harness.infer import predict
     onnx_path = run_dir / "models" / f"{name}.onnx"
@@ -215,6 +228,9 @@ def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, soti
     stages.run(f"evaluate_{name}", {**key, "bootstrap": cfg.bootstrap, "evaluator": EVALUATOR_VERSION,
                                     "predictions": stages.outputs_digest(f"predict_{name}")}, _evaluate,
                outputs=[res_path])
+    if sweep_hash is not None:
+        from harness.run_space import predict_eval_sweep
+        predict_eval_sweep(stages, cfg, run_dir, name, sweep_hash, runtime, threads)
     return json.loads((pred / "predict.json").read_text())
 
 
@@ -234,11 +250,17 @@ def _runtime_probe(stages: Stages, cfg: RunConfig, run_dir: Path, name: str) -> 
 
 def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe: dict) -> dict:
     from harness.infer import check_contract
+    from harness.run_space import space_summary
     from harness.sotif import sotif_view
     onnx_path = run_dir / "models" / f"{name}.onnx"
     info = check_contract(onnx_path)
     ck = _checkpoint_meta(checkpoint_of(run_dir, name))
     data = run_dir / "data" / "sotif"
+    view = sotif_view(data, run_dir / "predictions" / name, split="test",
+                      val_predictions_dir=run_dir / "predictions_val" / name)
+    runtime = {"prediction": ort, **{k: v for k, v in probe.items() if k != "seconds"},
+               "onnxruntime": probe.get("onnxruntime") or ort}
+    threshold = next(iter(view.values()))["threshold"]
     return {"architecture": info.architecture, "two_stage": info.two_stage, "uses_camera": info.uses_camera,
             "onnx": f"models/{name}.onnx", "size_mb": onnx_path.stat().st_size / 2**20, "params": ck["params"],
             "op_histogram": info.op_histogram, "provenance": info.provenance,
@@ -247,21 +269,19 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
                       "val_ap": ck["val_ap"], "val_history": ck["val_history"]},
             # latency measured by the probe with the machine to itself; the prediction stage's own
             # figures (all test frames, possibly beside another job) stay under "prediction"
-            "runtime": {"prediction": ort, **{k: v for k, v in probe.items() if k != "seconds"},
-                        "onnxruntime": probe.get("onnxruntime") or ort},
-            "results": f"results/{name}.json",
-            "sotif": sotif_view(data, run_dir / "predictions" / name, split="test",
-                                val_predictions_dir=run_dir / "predictions_val" / name)}
+            "runtime": runtime, "results": f"results/{name}.json", "sotif": view,
+            **space_summary(run_dir, name, threshold, runtime)}
 
 
 def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_hash: str, runtime: str,
-               progress: bool, threads: int | None, bars: bool, draw: int = 0) -> tuple[dict, dict]:
+               progress: bool, threads: int | None, bars: bool, draw: int = 0,
+               sweep_hash: str | None = None) -> tuple[dict, dict]:
     """Train, export, predict and evaluate one model's draw (in the run's process or a job process)."""
     if _INTERRUPTED:  # a job process that was interrupted takes no further job from the pool's queue
         raise KeyboardInterrupt("the run was interrupted")
     stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
     tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
-    return tinfo, _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads)
+    return tinfo, _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads, sweep_hash)
 
 
 _INTERRUPTED = False  # set in a job process by its first SIGINT
@@ -301,7 +321,7 @@ def _exit_with_parent(parent: int, poll_s: float = 0.5) -> None:
 
 
 def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: str, sotif_hash: str, runtime: str,
-                progress: bool, t0: float) -> dict[str, tuple[dict, dict]]:
+                progress: bool, t0: float, sweep_hash: str | None = None) -> dict[str, tuple[dict, dict]]:
     """``_model_job`` for every model and training draw (keyed by :func:`draw_tag`): ``cfg.jobs``
     processes at once with ``cores // jobs`` threads each (the sparse and point-based networks gain
     little from a second thread in one step, so two models side by side finish sooner than one
@@ -341,7 +361,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
             starts[name] = time.perf_counter()
             say(f"== model {i}/{len(names)}: {name} (elapsed {time.perf_counter() - t0:.0f} s)")
             finished(name, _model_job(cfg, run_dir, name, train_hash, sotif_hash, runtime, progress, None, progress,
-                                      draws[name]))
+                                      draws[name], sweep_hash))
         return done
     import multiprocessing
     threads = max(1, (os.cpu_count() or 1) // jobs)
@@ -354,7 +374,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
             while len(pending) < jobs and (name := next_ready()) is not None:
                 starts[name] = time.perf_counter()
                 pending[pool.submit(_model_job, cfg, run_dir, name, train_hash, sotif_hash, runtime, progress,
-                                    threads, False, draws[name])] = name
+                                    threads, False, draws[name], sweep_hash)] = name
 
         submit_ready()
         try:
@@ -497,8 +517,9 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         t0 = time.perf_counter()
         train_hash = _simulate(stages, cfg, run_dir / "data", "train")
         sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
+        sweep_hash = _simulate(stages, cfg, run_dir / "data", "sweep") if cfg.sweep_instances else None
         _gt_database(cfg, run_dir, names)
-        done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0)
+        done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0, sweep_hash)
         summary = {}
         for name in names:  # one model at a time: the latency figures own the machine
             probe = _runtime_probe(stages, cfg, run_dir, name)

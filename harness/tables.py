@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness import result_schema
+from harness import report_space, result_schema
 from harness.kitti import KittiError, atomic_write_text, read_frames_meta
 
 RUN_SCHEMA = "sotif-bench/run/1"
@@ -451,6 +451,8 @@ def build_tables(run: Run) -> dict[str, pd.DataFrame]:
         "lidar_fidelity": fidelity_table(run.meta),
         # only with several training draws: a run of one draw writes the files it always wrote
         **({"draws": draws_table(run)} if run.summary.get("draws") else {}),
+        # only with scenario-space results (harness.report_space)
+        **{k: v for k, v in report_space.build(run.summary).items() if not v.empty},
     }
     return {"overview": overview_table(run, t), **t}
 

@@ -1,0 +1,70 @@
+"""The scenario-space part of a run: the weather sweep set's predictions and evaluation, and each
+model's SOTIF-over-instances and calibration summary (``harness.sotif_space``, ``harness.calibration``).
+
+The sweep set (``data/sweep``, ``RunConfig.sweep_instances`` instances over rain rate, fog visibility
+and road water) is predicted into ``predictions_sweep/<model>/`` and evaluated into
+``results/<model>.sweep.json`` grouped by ``SWEEP_GROUPS``, as the SOTIF set is. The summary adds to
+each model of ``results.json``:
+
+- ``sotif_space.<sotif|sweep>``: ``harness.sotif_space.instance_view`` (rule, instances, frames) at
+  the model's operating threshold (the SOTIF view's) with its onnxruntime latency p50 added to the
+  reaction time;
+- ``calibration.<0.7|0.5>.<all|precipitation class>``: ``harness.calibration.calibration_view``
+  over the SOTIF set's test frames.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from harness.stages import Stages, file_digest
+
+SWEEP_GROUPS = ("sweep_axis", "rain_rate_mmh", "fog_mor_m", "road_water", "precipitation_class")
+SETS = ("sotif", "sweep")
+
+
+def predictions_of(run_dir: Path, data_set: str, name: str) -> Path:
+    """Where a run keeps a model's test predictions of a data set."""
+    return run_dir / ("predictions" if data_set == "sotif" else f"predictions_{data_set}") / name
+
+
+def predict_eval_sweep(stages: Stages, cfg, run_dir: Path, name: str, sweep_hash: str, runtime: str,
+                       threads: int | None = None) -> None:
+    """Predict the sweep set's test frames with a model's ONNX file and evaluate them."""
+    from harness.evaluate import EVALUATOR_VERSION, evaluate, write_results
+    from harness.infer import predict
+    onnx_path = run_dir / "models" / f"{name}.onnx"
+    data, pred = run_dir / "data" / "sweep", predictions_of(run_dir, "sweep", name)
+    key = {"onnx": file_digest(onnx_path), "data": sweep_hash, "runtime": runtime}
+    stages.run(f"predict_sweep_{name}", key, lambda: {"summary": predict(onnx_path, data, pred, split="test",
+                                                                         runtime=runtime, progress=stages.bars,
+                                                                         threads=threads)}, outputs=[pred])
+    res_path = run_dir / "results" / f"{name}.sweep.json"
+
+    def _evaluate():
+        res = evaluate(data, pred, split=data / "ImageSets" / "test.txt", group_by=list(SWEEP_GROUPS),
+                       meta=data / "meta" / "frames.csv", n_bootstrap=cfg.bootstrap, seed=cfg.seed)
+        write_results(res_path, res)
+        return {}
+    stages.run(f"evaluate_sweep_{name}", {**key, "bootstrap": cfg.bootstrap, "evaluator": EVALUATOR_VERSION,
+                                          "predictions": stages.outputs_digest(f"predict_sweep_{name}")},
+               _evaluate, outputs=[res_path])
+
+
+def latency_s(runtime: dict) -> float:
+    """The model's onnxruntime latency p50 in seconds (0 when it was not measured)."""
+    p50 = ((runtime or {}).get("onnxruntime") or {}).get("latency_ms_p50")
+    return float(p50) / 1000.0 if isinstance(p50, (int, float)) else 0.0
+
+
+def space_summary(run_dir: Path, name: str, threshold: float, runtime: dict) -> dict:
+    """``{"sotif_space": {set: instance_view}, "calibration": ...}`` of one model (module docstring)."""
+    from harness.calibration import calibration_view
+    from harness.sotif_space import instance_view
+    lat = latency_s(runtime)
+    views = {}
+    for data_set in SETS:
+        data, pred = run_dir / "data" / data_set, predictions_of(run_dir, data_set, name)
+        if (data / "ImageSets" / "test.txt").is_file() and pred.is_dir():
+            views[data_set] = instance_view(data, pred, threshold, lat)
+    return {"sotif_space": views,
+            "calibration": calibration_view(run_dir / "data" / "sotif", predictions_of(run_dir, "sotif", name))}
