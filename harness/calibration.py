@@ -44,8 +44,8 @@ def reliability(scores, correct, n_bins: int = N_BINS) -> dict:
     s, c = np.asarray(scores, dtype=np.float64), np.asarray(correct, dtype=np.float64)
     b = np.clip((s * n_bins).astype(np.int64), 0, n_bins - 1)  # (D,) bin of each score
     count = np.bincount(b, minlength=n_bins)
-    conf = np.bincount(b, weights=s, minlength=n_bins)
-    acc = np.bincount(b, weights=c, minlength=n_bins)
+    conf = np.bincount(b, weights=s, minlength=n_bins).astype(np.float64)  # (n_bins,) sums, then means
+    acc = np.bincount(b, weights=c, minlength=n_bins).astype(np.float64)
     full = count > 0
     conf[full] /= count[full]
     acc[full] /= count[full]

@@ -1,0 +1,164 @@
+import math
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness import kitti, sotif, sotif_space
+from harness.conditions import condition_labels
+from tests.harness.test_sotif import OTHER, SLOW, _write_frame, make_sotif
+
+FRONT = 4.7 / 2 + 4.75 / 2  # LiDAR to the ego's bumper plus half the slow car: rear gap = x - FRONT
+FAR = 20.0  # a prediction shift that leaves no overlap
+T_LC = 1.0  # s, lane change
+TIMES = [0.0, 0.5] + [round(1.0 + 0.1 * j, 1) for j in range(10)]  # 2 Hz before the lane change, 10 Hz after
+
+
+def make_instances(root, instances):
+    """An instance-mode data set: ``instances`` maps (weather, instance) -> (ego m/s, slow m/s, hits after the
+    lane change); every instance has frames at TIMES, the slow car's rear 50 m ahead at the lane change."""
+    pred_dir = root / "pred"
+    pred_dir.mkdir(parents=True)
+    rows, fid_no = [], 0
+    for (weather, inst), (ego, slow, hits) in instances.items():
+        for t in TIMES:
+            fid = f"{fid_no:06d}"
+            fid_no += 1
+            box = SLOW.copy()
+            box[0] = 50.0 + FRONT - (ego - slow) * (t - T_LC)
+            j = round((t - T_LC) * 10)
+            hit = hits[j] if j >= 0 else 1  # a hit before the lane change never counts
+            shifted = box.copy()
+            shifted[0] += 0.0 if hit else FAR
+            _write_frame(root, fid, np.stack([OTHER, box]), shifted, [0.9], pred_dir)
+            rows.append({"frame_id": fid, "split": "test", "weather": weather, "instance": inst,
+                         "instance_key": f"{weather}#{inst}", "sweep_axis": "preset", "scenario_time_s": t,
+                         "lane_change_time_s": T_LC, "slow_car_label_index": 1, "ego_speed_mps": ego,
+                         "slow_car_speed_mps": slow, "in_window": int(t >= T_LC), "rain_rate_mmh": 0.0,
+                         "fog_mor_m": 0.0, "road_water": 0.0, "precipitation_class": "dry",
+                         "sc_slow_reflectance": 0.1 + 0.1 * inst, "sc_slow_body": "car"})
+    kitti.write_image_set(root / "ImageSets" / "test.txt", [r["frame_id"] for r in rows])
+    kitti.write_frames_meta(root / "meta" / "frames.csv", pd.DataFrame(rows))
+    return root, pred_dir
+
+
+def brute_confirmed(hits, k, n):
+    for i in range(len(hits)):
+        if hits[i] and sum(hits[max(0, i - n + 1): i + 1]) >= k:
+            return i
+    return None
+
+
+def test_confirmed_index_by_hand_and_against_brute_force():
+    assert sotif_space.confirmed_index([1, 0, 1, 0, 0, 1, 1, 1, 0, 0]) == 6  # hits 2, 5, 6 in frames 2..6
+    assert sotif_space.confirmed_index([1, 0, 0, 0, 1, 0, 0, 0, 1, 0]) is None  # never 3 in 5
+    assert sotif_space.confirmed_index([1, 1, 1]) == 2 and sotif_space.confirmed_index([]) is None
+    assert sotif_space.confirmed_index([0, 1], k=1, n=1) == 1
+    with pytest.raises(ValueError, match="k <= n"):
+        sotif_space.confirmed_index([1], k=4, n=3)
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        hits = (rng.uniform(size=int(rng.integers(0, 25))) < rng.uniform()).tolist()
+        n = int(rng.integers(1, 7))
+        k = int(rng.integers(1, n + 1))
+        assert sotif_space.confirmed_index(hits, k, n) == brute_confirmed(hits, k, n)
+
+
+def test_braking_margin_hand_worked():
+    # 50 m gap at the lane change, closing at 10 m/s, confirmed 0.6 s later, 50 ms latency:
+    # gap 50 - 10 * 0.6 = 44 m; stopping 10 * (1.0 + 0.05) + 10^2 / (2 * 4) + 2 = 10.5 + 12.5 + 2 = 25 m
+    assert sotif_space.braking_margin(50.0, 10.0, 0.6, 0.05) == pytest.approx(44.0 - 25.0)
+    # closing at 30 m/s: gap 50 - 18 = 32 m; stopping 31.5 + 112.5 + 2 = 146 m
+    assert sotif_space.braking_margin(50.0, 30.0, 0.6, 0.05) == pytest.approx(32.0 - 146.0)
+    # not closing in: the margin alone is needed, whatever the latency
+    assert sotif_space.braking_margin(10.0, -2.0, 3.0, 0.5) == pytest.approx(10.0 - 2.0)
+
+
+def test_instance_view_hand_worked(tmp_path):
+    root, pred = make_instances(tmp_path / "d", {
+        ("ClearNoon", 0): (25.0, 15.0, [1, 0, 1, 0, 0, 1, 1, 1, 0, 0]),  # confirmed at 1.6 s: margin 19 m
+        ("ClearNoon", 1): (40.0, 10.0, [1, 0, 1, 0, 0, 1, 1, 1, 0, 0]),  # same frames, dv 30: margin -114 m
+        ("HardRainNight", 0): (25.0, 15.0, [1, 0, 0, 0, 1, 0, 0, 0, 1, 0]),  # hits but never 3 in 5
+    })
+    view = sotif_space.instance_view(root, pred, threshold=0.5, latency_s=0.05)
+    assert view["rule"] == {"k": 3, "n": 5, "latency_s": 0.05, "threshold": 0.5}
+    a, b, c = view["instances"]
+    assert [r["instance_key"] for r in (a, b, c)] == ["ClearNoon#0", "ClearNoon#1", "HardRainNight#0"]
+    assert a["confirmed"] and a["time_after_lane_change_s"] == pytest.approx(0.6)
+    assert a["gap_m"] == pytest.approx(44.0, abs=0.02) and a["stopping_distance_m"] == pytest.approx(25.0)
+    assert a["margin_m"] == pytest.approx(19.0, abs=0.02) and a["pass"] is True and a["n_frames"] == 10
+    assert b["margin_m"] == pytest.approx(-114.0, abs=0.02) and b["pass"] is False
+    assert c["detected"] and not c["confirmed"] and c["margin_m"] is None and c["pass"] is False
+    assert a["sc_slow_reflectance"] == pytest.approx(0.1) and b["sc_slow_reflectance"] == pytest.approx(0.2)
+    frames = pd.DataFrame(view["frames"])
+    assert len(frames) == 30 and frames["hit"].sum() == 5 + 5 + 3  # only frames at or after the lane change
+    first = frames[frames.instance_key == "ClearNoon#0"].iloc[0]
+    assert first["distance_m"] == pytest.approx(50.0, abs=0.02) and "rain_rate_mmh" in frames
+
+
+def test_old_dataset_is_one_instance_per_weather_and_agrees_with_the_sotif_view(tmp_path):
+    weathers = {"ClearNoon": [(0.9, 0.0), (0.9, FAR), (0.9, FAR), (0.9, 0.0), (0.9, 0.0)],
+                "HardRainNight": [(0.9, FAR)] * 5}
+    root, pred = make_sotif(tmp_path / "d", weathers)
+    old = sotif.sotif_view(root, pred, threshold=0.3)
+    view = sotif_space.instance_view(root, pred, threshold=0.3, latency_s=0.0, k=1, n=1)
+    assert [r["instance_key"] for r in view["instances"]] == list(old)
+    for row in view["instances"]:
+        ref = old[row["instance_key"]]
+        assert row["instance"] == 0 and row["pass"] == ref["pass"] and row["confirmed"] == ref["detected"]
+        assert row["stopping_distance_m"] == pytest.approx(ref["stopping_distance_m"])
+        if ref["detected"]:
+            assert row["gap_m"] == pytest.approx(ref["distance_if_no_braking_m"])
+            assert row["time_after_lane_change_s"] == pytest.approx(ref["time_after_lane_change_s"])
+
+
+def wilson_reference(k, n, z=1.959963984540054):
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z / (1 + z * z / n) * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n))
+    return centre - half, centre + half
+
+
+def test_wilson_interval_against_the_formula():
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        n = int(rng.integers(1, 200))
+        k = int(rng.integers(0, n + 1))
+        assert sotif_space.wilson_interval(k, n) == pytest.approx(wilson_reference(k, n), abs=1e-9)
+    assert all(math.isnan(v) for v in sotif_space.wilson_interval(0, 0))
+
+
+def test_pass_rates_per_bin_mark_too_few():
+    inst = pd.DataFrame({"weather": ["A"] * 6 + ["B"] * 2, "pass": [True, True, False, True, True, True, False, False],
+                         "sc_ego_speed_kmh": np.linspace(80, 130, 8)})
+    rates = sotif_space.pass_rates(inst, "weather").set_index("bin")
+    assert rates.loc["A", "n"] == 6 and rates.loc["A", "n_pass"] == 5 and not rates.loc["A", "too_few"]
+    assert (rates.loc["A", "lo"], rates.loc["A", "hi"]) == pytest.approx(wilson_reference(5, 6))
+    assert rates.loc["B", "rate"] == 0.0 and rates.loc["B", "too_few"]
+    assert sotif_space.pass_rates(inst, "fog_mor_m").empty  # a column the data set does not have
+
+
+def test_boundary_grid_against_a_loop():
+    rng = np.random.default_rng(2)
+    frames = pd.DataFrame({"distance_m": rng.uniform(0, 100, 200), "rain_rate_mmh": rng.uniform(0, 55, 200),
+                           "hit": rng.uniform(size=200) < 0.6})
+    x_edges, y_edges = [0, 25, 50, 75, 100], [0, 10, 30, 60, 100]  # no frame above 55 mm/h: an empty row
+    hits, counts = sotif_space.boundary_grid(frames, "rain_rate_mmh", x_edges, y_edges)
+    assert counts.shape == (4, 4) and (counts[3] == 0).all() and counts.sum() == 200
+    for i in range(4):
+        for j in range(4):
+            inside = ((frames.rain_rate_mmh >= y_edges[i]) & (frames.rain_rate_mmh < y_edges[i + 1])
+                      & (frames.distance_m >= x_edges[j]) & (frames.distance_m < x_edges[j + 1]))
+            assert counts[i, j] == inside.sum() and hits[i, j] == (inside & frames.hit).sum()
+
+
+def test_condition_labels_bin_only_many_numeric_values():
+    few = pd.Series([0.0, 4.5, 4.5, 18.0])
+    assert condition_labels(few).tolist() == ["0.0", "4.5", "4.5", "18.0"]  # as str(value), as grouping did
+    assert condition_labels(pd.Series(["car", "van"])).tolist() == ["car", "van"]
+    many = pd.Series(np.arange(20, dtype=float))
+    labels = condition_labels(many)
+    assert labels.nunique() == 4 and labels.iloc[0] == "[0, 4.75)" and labels.iloc[-1] == "[14.2, 19]"
+    for value, label in zip(many, labels):
+        lo, hi = (float(v) for v in label.strip("[])").split(", "))
+        assert lo <= value <= hi
