@@ -91,10 +91,12 @@ def pass_rates(instances: pd.DataFrame, column: str) -> pd.DataFrame:
 
 def boundary_grid(frames: pd.DataFrame, y: str, x_edges, y_edges) -> tuple[np.ndarray, np.ndarray]:
     """(hits, counts), each (len(y_edges) - 1, len(x_edges) - 1): slow-car frames binned by distance
-    (``distance_m``, columns) and ``y`` (rows), bins closed on the left; values outside are dropped."""
+    (``distance_m``, columns) and ``y`` (rows), bins closed on the left (the last on both sides); frames
+    outside the edges or without a ``y`` value (a data set without that condition) are dropped."""
     x = frames["distance_m"].to_numpy(float)
     yv = frames[y].to_numpy(float)
-    hit = frames["hit"].to_numpy(bool)
+    ok = ~np.isnan(x) & ~np.isnan(yv)
+    x, yv, hit = x[ok], yv[ok], frames["hit"].to_numpy(bool)[ok]
     counts, _, _ = np.histogram2d(yv, x, bins=[np.asarray(y_edges, float), np.asarray(x_edges, float)])
     hits, _, _ = np.histogram2d(yv[hit], x[hit], bins=[np.asarray(y_edges, float), np.asarray(x_edges, float)])
     return hits.astype(np.int64), counts.astype(np.int64)

@@ -1,0 +1,75 @@
+"""The scenario-space stages of a run: instance counts per profile, the sweep set's simulation key."""
+import inspect
+import json
+from dataclasses import replace
+
+import pytest
+
+import simulator
+from harness import run as run_mod
+from harness.run import DATA_PARTS, PROFILES, RunConfig
+from harness.stages import Stages, config_hash
+from simulator.dataset import GENERATOR_VERSION
+
+TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2,
+                 jobs=1)
+HAS_INSTANCES = "instances" in inspect.signature(simulator.generate).parameters
+
+
+def test_profiles_set_instance_counts():
+    assert (PROFILES["quick"].sotif_instances, PROFILES["quick"].sweep_instances) == (2, 3)
+    assert (PROFILES["default"].sotif_instances, PROFILES["default"].sweep_instances) == (6, 60)
+    assert TINY.sotif_instances is None and TINY.sweep_instances is None  # the study's set, no sweep
+
+
+def fake_generate(calls):
+    def generate(out, **kwargs):
+        calls.append(kwargs)
+        for part in DATA_PARTS:
+            (out / part).mkdir(parents=True, exist_ok=True)
+        (out / "meta" / "dataset.json").write_text(json.dumps(kwargs, default=str))
+        return out
+    return generate
+
+
+def test_the_sweep_set_is_simulated_with_its_instances_and_keyed_by_them(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(simulator, "generate", fake_generate(calls))
+    cfg = replace(TINY, seed=4, sotif_instances=2, sweep_instances=3)
+    stages = Stages(tmp_path, progress=False)
+    run_mod._simulate(stages, cfg, tmp_path / "data", "sweep")
+    run_mod._simulate(stages, cfg, tmp_path / "data", "sotif")
+    sweep, sotif = calls
+    assert sweep["preset"] == "sweep" and sweep["instances"] == 3 and sweep["frames"] is None and sweep["seed"] == 2004
+    assert sotif["preset"] == "sotif" and sotif["instances"] == 2 and sotif["frames"] == 21 and sotif["seed"] == 4
+    assert sweep["force"] is True
+    key = {"preset": "sweep", "frames": None, "seed": 2004, "lidar": "physics", "generator": GENERATOR_VERSION,
+           "instances": 3}
+    assert stages.record("simulate_sweep")["key"] == config_hash(key)
+    run_mod._simulate(stages, replace(cfg, sweep_instances=4), tmp_path / "data", "sweep")
+    assert len(calls) == 3 and calls[-1]["instances"] == 4  # another instance count simulates again
+
+
+def test_the_studys_set_keeps_its_key_and_call(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(simulator, "generate", fake_generate(calls))
+    stages = Stages(tmp_path, progress=False)
+    run_mod._simulate(stages, TINY, tmp_path / "data", "sotif")
+    assert "instances" not in calls[0]  # a simulator without instances is called as it always was
+    key = {"preset": "sotif", "frames": 21, "seed": 0, "lidar": "physics", "generator": GENERATOR_VERSION}
+    assert stages.record("simulate_sotif")["key"] == config_hash(key)
+
+
+@pytest.mark.skipif(not HAS_INSTANCES, reason="simulator.generate has no instances= yet")
+def test_a_run_with_instances_and_a_sweep_set(tmp_path):
+    out = run_mod.run(models=["pointpillars"], out=tmp_path / "run", progress=False,
+                      config=replace(TINY, sotif_instances=1, sweep_instances=2))
+    summary = json.loads((out / "results.json").read_text())
+    model = summary["models"]["pointpillars"]
+    assert set(model["sotif_space"]) == {"sotif", "sweep"} and set(model["calibration"]) == {"0.7", "0.5"}
+    assert len({r["instance_key"] for r in model["sotif_space"]["sweep"]["instances"]}) >= 2
+    res = json.loads((out / "results" / "pointpillars.sweep.json").read_text())
+    assert "sweep_axis" in res["groups_by"]
+    for name in ("sotif_instances", "sotif_pass_rates", "triggering_conditions", "calibration"):
+        assert (out / "tables" / f"{name}.csv").is_file()
+    assert "SOTIF over the scenario space" in (out / "report.md").read_text()
