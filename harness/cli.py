@@ -282,7 +282,8 @@ def _add_evaluate(sub, quiet) -> None:
     s.add_argument("--labels", help="label folder (DATA/training/label_2) or data set folder")
     s.add_argument("--predictions", help="folder of KITTI result files (from predict)")
     s.add_argument("--split", help=SPLIT_HELP + " (default: every label file; with --onnx: test)")
-    s.add_argument("--group-by", help="a column of meta/frames.csv, e.g. weather")
+    s.add_argument("--group-by", help="a column of meta/frames.csv, e.g. weather (a numeric one with more than "
+                                      "10 values, a swept condition, groups by quantile bins)")
     s.add_argument("--meta", help="with --group-by: the data set's meta/frames.csv (default: the one "
                    "beside the labels, <root>/meta/frames.csv, when there is one)")
     s.add_argument("--output", required=True, type=_path, help="results.json to write")

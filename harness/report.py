@@ -188,7 +188,8 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
     return [
         Section("main", "Headline AP per weather preset",
                 "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% intervals by "
-                f"{report_space.ci_method(run.results)} (the SOTIF targets are far and small, so KITTI's moderate/hard filters would ignore "
+                f"{report_space.ci_method(run.results)} (the SOTIF targets are far and small, so KITTI's "
+                "moderate/hard filters would ignore "
                 "most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"],
                 figures_first=True),
         *draws,

@@ -185,7 +185,8 @@ def figure_specs(summary: dict, t: dict) -> dict:
                                   "never confirmed.", margin_figure(inst))
     boundary = t.get("sotif_boundary", pd.DataFrame())
     for model in dict.fromkeys(boundary["model"]) if not boundary.empty else []:
-        specs[f"boundary_{model}"] = (f"{model}: share of slow-car frames detected (score >= operating threshold, BEV "
+        specs[f"boundary_{model}"] = (f"{model}: share of slow-car frames after the lane change detected (SOTIF and "
+                                      "sweep sets; score >= operating threshold, BEV "
                                       "IoU >= 0.5) per distance and condition bin; blank cells hold no frame "
                                       "(counts in tables/sotif_boundary.csv).", boundary_figure(boundary, model))
     if not t.get("calibration", pd.DataFrame()).empty:

@@ -85,7 +85,8 @@ _RELIABILITY = {"ece": OPT, "n": NUMBER,  # harness.calibration.reliability
 _MODEL = {
     "results": TEXT, "size_mb?": OPT, "params?": OPT, "runtime?": _RUNTIME, "sotif?": Maybe(Each(_SOTIF_ROW)),
     "train?": Maybe({"seconds?": OPT, "epochs?": OPT, "val_ap?": Maybe({"3d_moderate?": OPT})}),
-    "provenance?": Maybe(Each(ANY)), "sotif_space?": Maybe(Each(_SPACE)), "calibration?": Maybe(Each(Each(_RELIABILITY))),
+    "provenance?": Maybe(Each(ANY)), "sotif_space?": Maybe(Each(_SPACE)),
+    "calibration?": Maybe(Each(Each(_RELIABILITY))),
 }
 _DRAW = {"seed": ANY, "val_ap?": Maybe({"3d_moderate?": OPT}), "headline?": Maybe({"3d?": Maybe({"0.7?": OPT}),
                                                                                   "bev?": Maybe({"0.7?": OPT})})}
