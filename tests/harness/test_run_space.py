@@ -73,3 +73,42 @@ def test_a_run_with_instances_and_a_sweep_set(tmp_path):
     for name in ("sotif_instances", "sotif_pass_rates", "triggering_conditions", "calibration"):
         assert (out / "tables" / f"{name}.csv").is_file()
     assert "SOTIF over the scenario space" in (out / "report.md").read_text()
+
+
+def test_the_model_summary_carries_the_scenario_space(tmp_path, monkeypatch):
+    from tests.harness.conftest import centroid_detector
+    from tests.harness.test_report import make_run
+    root = make_run(tmp_path / "run", models=(("alpha", 0.1, False),))
+    (root / "models").mkdir()
+    centroid_detector(root / "models" / "alpha.onnx")
+    monkeypatch.setattr(run_mod, "_checkpoint_meta", lambda ckpt: {k: None for k in (
+        "params", "epochs", "final_loss", "val_ap", "val_history", "train_seconds")})
+    probe = {"onnxruntime": {"latency_ms_p50": 120.0}, "seconds": 1.0}
+    summary = run_mod._model_summary(TINY, root, "alpha", {"seconds": 2.0}, {"latency_ms_p50": 99.0}, probe)
+    view = summary["sotif_space"]["sotif"]
+    assert view["rule"]["latency_s"] == pytest.approx(0.12)  # the probe's latency, not the prediction stage's
+    assert view["rule"]["threshold"] == summary["sotif"]["ClearNoon"]["threshold"]
+    assert [r["instance_key"] for r in view["instances"]] == list(summary["sotif"])
+    assert "sweep" not in summary["sotif_space"] and set(summary["calibration"]) == {"0.7", "0.5"}
+
+
+def test_the_sweep_set_is_predicted_and_evaluated_by_condition(tmp_path):
+    import numpy as np
+    from harness import kitti
+    from harness.run_space import SWEEP_GROUPS, predict_eval_sweep
+    from tests.harness.conftest import centroid_detector, make_dataset
+    data = make_dataset(tmp_path / "data" / "sweep", n_frames=4, weathers=("Sweep",))
+    meta = kitti.read_frames_meta(data / "meta" / "frames.csv")
+    meta = meta.assign(instance=np.arange(4), instance_key=[f"Sweep#{i}" for i in range(4)],
+                       sweep_axis=["rain", "rain", "fog", "water"], rain_rate_mmh=[0.0, 50.0, 0.0, 0.0],
+                       fog_mor_m=[0.0, 0.0, 80.0, 0.0], road_water=[0.0, 0.0, 0.0, 0.8],
+                       precipitation_class=["dry", "rain", "dry", "wet"])
+    kitti.write_frames_meta(data / "meta" / "frames.csv", meta)
+    (tmp_path / "models").mkdir()
+    centroid_detector(tmp_path / "models" / "alpha.onnx")
+    predict_eval_sweep(Stages(tmp_path, progress=False), TINY, tmp_path, "alpha", "data-hash", "onnxruntime")
+    assert len(list((tmp_path / "predictions_sweep" / "alpha").glob("*.txt"))) == 4
+    res = json.loads((tmp_path / "results" / "alpha.sweep.json").read_text())
+    assert set(res["groups_by"]) == set(SWEEP_GROUPS) and set(res["groups_by"]["sweep_axis"]["rows"]) == {
+        "rain", "fog", "water"}
+    assert res["groups_by"]["sweep_axis"]["rows"]["rain"]["ci_method"].startswith("bootstrap over instances (2 ")
