@@ -75,7 +75,8 @@ def _check_instances(preset, instances, frames, weathers) -> ScenarioSpace | Non
     if preset != "sweep" and instances == 1:
         return None
     if frames is not None:
-        raise ValueError("frames cannot be set with instances > 1 or the sweep preset: each instance records its own frames")
+        raise ValueError("frames cannot be set with instances > 1 or the sweep preset: each instance records "
+                         "its own frames")
     if preset == "sweep" and weathers is not None:
         raise ValueError("weathers cannot be set with the sweep preset: it draws its own weather per instance")
     space = ScenarioSpace(int(instances), sweep=preset == "sweep")
@@ -128,10 +129,13 @@ def plan_instance_jobs(cfg: GenerateConfig) -> list[FrameJob]:
     scenario.instance_steps; whole instances in val (space.val_share, never instance 0), the rest test."""
     sp = cfg.space
     val = val_instances(sp.instances, sp.val_share)
-    steps = [instance_steps(instance_run(cfg, i), inst.sotif_config(cfg.sotif), sp.lead_in_frames, sp.window_slack_s,
-                            sp.window_10hz_max_s, sp.window_max_s) for i, inst in enumerate(instances(sp, cfg.seed))]
-    specs = [(w, i, k, win, len(instance_run(cfg, i))) for w in cfg.weathers for i in range(sp.instances)
-             for k, win in steps[i]]
+    per_instance = []  # (recorded (step, in window), steps of the run) per instance
+    for i, inst in enumerate(instances(sp, cfg.seed)):
+        run = instance_run(cfg, i)
+        per_instance.append((instance_steps(run, inst.sotif_config(cfg.sotif), sp.lead_in_frames, sp.window_slack_s,
+                                            sp.window_10hz_max_s, sp.window_max_s), len(run)))
+    specs = [(w, i, k, win, per_instance[i][1]) for w in cfg.weathers for i in range(sp.instances)
+             for k, win in per_instance[i][0]]
     return [FrameJob(n, f"{n:06d}", w, k, "val" if i in val else "test", length, i, win)
             for n, (w, i, k, win, length) in enumerate(specs)]
 

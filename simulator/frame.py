@@ -6,7 +6,8 @@ the vehicle is hidden or beyond the labelling distance). Training scenes have ne
 
 Worlds, their Embree scenes and the SOTIF trajectories are cached per process. Random
 streams are seeded per frame: the LiDAR's from (seed, scenario, scenario step) for SOTIF so
-that a weather-blind sensor gives the same scan in every weather, the rest from the frame index.
+that a weather-blind sensor gives the same scan in every weather (instance mode: from (seed, scenario,
+instance, step)), the rest from the frame index.
 """
 from __future__ import annotations
 
@@ -64,6 +65,7 @@ def row_columns(cfg) -> tuple[str, ...]:
 
 
 def job_instance(cfg, job: FrameJob) -> Instance:
+    """The scenario instance an instance-mode frame belongs to."""
     return instances(cfg.space, cfg.seed)[job.instance]
 
 
@@ -83,7 +85,7 @@ def instance_run(cfg, index: int) -> list[FrameState]:
         sc = inst.sotif_config(cfg.sotif)
         stream = [cfg.seed, 21] if (index == 0 and not cfg.space.sweep) else [cfg.seed, 21 + 2 * cfg.space.sweep, index]
         n = run_steps(sc, cfg.space.window_max_s, cfg.space.window_slack_s)
-        if len(_RUNS) >= 64:
+        if len(_RUNS) >= 512:  # a run is ~100 small FrameStates
             _RUNS.pop(next(iter(_RUNS)))
         _RUNS[key] = sotif_run(cfg.road, n, np.random.default_rng(stream), replace(sc, record_every=1),
                                inst.lateral_offset_m, inst.slow_reflectance)

@@ -10,7 +10,8 @@ import pytest
 from simulator import generate
 
 GOLDEN = json.loads((Path(__file__).parent / "data" / "golden_digests.json").read_text())
-CASES = {"sotif_frames6_ClearNoon_HardRainNight_seed3": dict(preset="sotif", frames=6, weathers="ClearNoon,HardRainNight", seed=3),
+CASES = {"sotif_frames6_ClearNoon_HardRainNight_seed3": dict(preset="sotif", frames=6,
+                                                             weathers="ClearNoon,HardRainNight", seed=3),
          "train_frames4_seed5": dict(preset="train", frames=4, seed=5)}
 
 

@@ -1,5 +1,6 @@
 """The scenario space: design, instances, decision window, sweep weather, reflectance override."""
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -61,7 +62,7 @@ def test_reflectances_are_physical():
 
 def _kinematic_window(inst) -> float:
     sc = inst.sotif_config()
-    run = sotif_run(ROAD, 40, np.random.default_rng(0), sc.__class__(**{**sc.__dict__, "record_every": 1}))
+    run = sotif_run(ROAD, 40, np.random.default_rng(0), replace(sc, record_every=1))
     k = int(round(run[0].info["lane_change_time_s"] / sc.dt))
     gap = run[k].info["slow_car_distance_m"] - (sc.slow_body[1][0] + EGO_DIMS[0]) / 2
     return window_length_s(gap, run[k].ego_speed - sc.slow_speed)
@@ -181,3 +182,20 @@ def test_plan_is_deterministic():
     keys = {(j.weather, j.instance) for j in jobs}
     assert keys == {(w, i) for w in ("ClearNoon", "WetNoon") for i in range(5)}
     assert {j.instance for j in jobs if j.split == "val"} == val_instances(5, 0.1)
+
+
+@pytest.mark.parametrize("argv, word", [(["--preset", "sotif", "--instances", "0"], "instances"),
+                                        (["--preset", "train", "--instances", "2"], "train"),
+                                        (["--preset", "sweep", "--weathers", "ClearNoon"], "weathers")])
+def test_cli_refuses_bad_instances(tmp_path, capsys, argv, word):
+    from harness.cli import main
+    assert main(["--quiet", "simulate", "--out", str(tmp_path / "x"), *argv]) == 2
+    assert word in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def test_cli_refuses_an_unknown_preset(tmp_path):
+    from harness.cli import main
+    with pytest.raises(SystemExit) as e:
+        main(["simulate", "--preset", "sweeps", "--out", str(tmp_path / "x")])
+    assert e.value.code == 2
