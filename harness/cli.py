@@ -109,7 +109,8 @@ def _data_root(labels: str) -> Path:
 def cmd_simulate(a) -> int:
     from simulator import generate
     out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=_nonempty_csv(a.weathers, "--weathers"),
-                   seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet, force=a.force)
+                   seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet, force=a.force,
+                   instances=a.instances)
     print(f"data set written to {out}")
     return 0
 
@@ -220,8 +221,12 @@ def _version() -> str:
 def _add_simulate(sub, quiet) -> None:
     s = sub.add_parser("simulate", parents=[quiet],
                        help="simulate the SOTIF test set or training scenes as a KITTI data set")
-    s.add_argument("--preset", choices=["sotif", "train"], required=True,
-                   help="sotif: the cut-out scenario under every weather; train: randomised training scenes")
+    s.add_argument("--preset", choices=["sotif", "train", "sweep"], required=True,
+                   help="sotif: the cut-out scenario under every weather; train: randomised training scenes; "
+                        "sweep: scenario instances under continuous rain, fog and road water")
+    s.add_argument("--instances", type=int, default=1,
+                   help="scenario instances per weather (sweep: in all) from a seeded space-filling design; 1 with "
+                        "sotif is the study's protocol, byte for byte (default 1)")
     s.add_argument("--out", required=True, type=_folder,
                    help="the data set folder to write (resumed if it holds a partial one of the same options)")
     s.add_argument("--force", action="store_true",

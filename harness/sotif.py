@@ -30,11 +30,8 @@ import pandas as pd
 
 from harness.boxes import iou_bev
 from harness.kitti import KittiError, Labels, frame_path, read_calib, read_frames_meta, read_image_set, read_labels
-from simulator.scenario import EGO_DIMS
+from simulator.scenario import DECEL_MPS2, EGO_DIMS, MARGIN_M, T_REACT_S, stopping_distance
 
-T_REACT_S = 1.0  # s, driver/system reaction time before braking starts
-DECEL_MPS2 = 4.0  # m/s^2, comfortable-to-firm braking deceleration
-MARGIN_M = 2.0  # m, gap left after braking
 LIDAR_TO_FRONT_M = EGO_DIMS[0] / 2  # m, the ego's front bumper ahead of its roof LiDAR (above its centre)
 IOU_BEV_MIN = 0.5
 FALLBACK_THRESHOLD = 0.3
@@ -43,13 +40,6 @@ META_COLUMNS = ("frame_id", "weather", "scenario_time_s", "lane_change_time_s", 
 
 
 # ----------------------------------------------------------------------------- pure functions
-def stopping_distance(closing_speed_mps: float, t_react: float = T_REACT_S, decel: float = DECEL_MPS2,
-                      margin: float = MARGIN_M) -> float:
-    """Distance (m) the ego needs to match the slow car's speed; a non-closing ego needs only the margin."""
-    dv = max(float(closing_speed_mps), 0.0)
-    return dv * t_react + dv * dv / (2.0 * decel) + margin
-
-
 def greedy_match(boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, iou_min: float = IOU_BEV_MIN) -> np.ndarray:
     """(D,) bool: detection i (LiDAR box (D, 7)) matched a ground-truth box (G, 7) at BEV IoU >= iou_min.
 

@@ -22,16 +22,17 @@ from tqdm import tqdm
 
 from harness import kitti
 from simulator.camera import CameraSpec
-from simulator.frame import ROW_COLUMNS, FrameJob, make_frame
+from simulator.frame import FrameJob, instance_run, make_frame, row_columns
 from simulator.labels import LabelConfig
 from simulator.lidar import LidarSpec, carla_spec
 from simulator.road import RoadConfig
-from simulator.scenario import SotifConfig, TrainConfig
+from simulator.scenario import SotifConfig, TrainConfig, instance_steps
+from simulator.space import SWEEP_WEATHER, ScenarioSpace, check_space, instances, val_instances
 from simulator.toolkit_views import write_views
 from simulator.weather import DRY_PRESETS, WEATHER_PRESETS
 
 GENERATOR_VERSION = "1.4"  # bump whenever the same seed gives other bytes
-PRESETS = ("sotif", "train")
+PRESETS = ("sotif", "train", "sweep")
 LIDAR_MODELS = ("physics", "carla")
 SOTIF_FRAMES, SOTIF_VAL = 547, 55
 TRAIN_FRAMES, TRAIN_VAL_SHARE = 400, 0.15
@@ -52,17 +53,42 @@ class GenerateConfig:
     sotif: SotifConfig = SotifConfig()
     train: TrainConfig = TrainConfig()
     generator_version: str = GENERATOR_VERSION
+    space: ScenarioSpace | None = None  # instance mode (simulator.space); None: the study's protocol / training
 
     def as_dict(self) -> dict:
-        return json.loads(json.dumps(asdict(self)))
+        """The config as JSON data; without instance mode it has no "space" key (the bytes of earlier sets)."""
+        d = json.loads(json.dumps(asdict(self)))
+        if d["space"] is None:
+            del d["space"]
+        return d
 
     def digest(self) -> str:
         return hashlib.sha256(json.dumps(self.as_dict(), sort_keys=True).encode()).hexdigest()
 
 
+def _check_instances(preset, instances, frames, weathers) -> ScenarioSpace | None:
+    """The instance mode's space (None: the study's protocol or training scenes); ValueError naming a bad input."""
+    if not isinstance(instances, (int, np.integer)) or isinstance(instances, bool) or instances < 1:
+        raise ValueError(f"instances must be an integer >= 1, got {instances!r}")
+    if preset == "train" and instances != 1:
+        raise ValueError(f"instances applies to the sotif and sweep presets, not to train (got {instances})")
+    if preset != "sweep" and instances == 1:
+        return None
+    if frames is not None:
+        raise ValueError("frames cannot be set with instances > 1 or the sweep preset: each instance records "
+                         "its own frames")
+    if preset == "sweep" and weathers is not None:
+        raise ValueError("weathers cannot be set with the sweep preset: it draws its own weather per instance")
+    space = ScenarioSpace(int(instances), sweep=preset == "sweep")
+    check_space(space)
+    return space
+
+
 def _check_args(preset, frames, weathers, workers, lidar_model) -> tuple[str, ...]:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
+    if preset == "sweep":
+        weathers = [SWEEP_WEATHER]
     if lidar_model not in LIDAR_MODELS:
         raise ValueError(f"unknown lidar model {lidar_model!r}; valid: {', '.join(LIDAR_MODELS)}")
     if frames is not None and (not isinstance(frames, (int, np.integer)) or isinstance(frames, bool) or frames < 1):
@@ -75,7 +101,7 @@ def _check_args(preset, frames, weathers, workers, lidar_model) -> tuple[str, ..
         weathers = list(WEATHER_PRESETS) if preset == "sotif" else list(DRY_PRESETS)
     if len(weathers) == 0:
         raise ValueError("weathers must name at least one preset")
-    bad = [w for w in weathers if w not in WEATHER_PRESETS]
+    bad = [w for w in weathers if w not in WEATHER_PRESETS and preset != "sweep"]
     if bad:
         raise ValueError(f"unknown weather preset(s) {', '.join(map(repr, bad))}; valid: {', '.join(WEATHER_PRESETS)}")
     if len(set(weathers)) != len(weathers):
@@ -98,11 +124,29 @@ def _spread(total: int, n: int) -> list[int]:
     return [total // n + (1 if i < total % n else 0) for i in range(n)]
 
 
+def plan_instance_jobs(cfg: GenerateConfig) -> list[FrameJob]:
+    """Instance mode: per weather (in order) its instances (in order), each with the frames of
+    scenario.instance_steps; whole instances in val (space.val_share, never instance 0), the rest test."""
+    sp = cfg.space
+    val = val_instances(sp.instances, sp.val_share)
+    per_instance = []  # (recorded (step, in window), steps of the run) per instance
+    for i, inst in enumerate(instances(sp, cfg.seed)):
+        run = instance_run(cfg, i)
+        per_instance.append((instance_steps(run, inst.sotif_config(cfg.sotif), sp.lead_in_frames, sp.window_slack_s,
+                                            sp.window_10hz_max_s, sp.window_max_s), len(run)))
+    specs = [(w, i, k, win, per_instance[i][1]) for w in cfg.weathers for i in range(sp.instances)
+             for k, win in per_instance[i][0]]
+    return [FrameJob(n, f"{n:06d}", w, k, "val" if i in val else "test", length, i, win)
+            for n, (w, i, k, win, length) in enumerate(specs)]
+
+
 def plan_jobs(cfg: GenerateConfig) -> list[FrameJob]:
     """Frame jobs in frame-id order with their split.
 
     SOTIF: a capped set keeps each weather's frames spread over the whole scenario run.
     """
+    if cfg.space is not None:
+        return plan_instance_jobs(cfg)
     if cfg.preset == "sotif":
         n_w = len(cfg.weathers)
         full = _spread(default_frames("sotif", n_w), n_w)  # recorded steps of a whole run
@@ -249,7 +293,7 @@ def run_job(args) -> dict:
 
 def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None:
     rows = sorted((r["row"] for r in records), key=lambda r: r["frame_id"])
-    df = pd.DataFrame(rows, columns=list(ROW_COLUMNS))
+    df = pd.DataFrame(rows, columns=list(row_columns(cfg)))
     written = [kitti.write_image_set(root / "ImageSets" / f"{split}.txt",
                                      df.loc[df["split"] == split, "frame_id"].tolist()) for split in ("train", "val", "test")]
     write_views(root, df.loc[df["split"] == "test", "frame_id"].tolist(),  # for OpenPCDet / MMDetection3D
@@ -279,7 +323,7 @@ def _worker_init() -> None:
 
 def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathers: list[str] | None = None,
              seed: int = 0, workers: int = 1, lidar_model: str = "physics", progress: bool = True,
-             lidar_spec: LidarSpec | None = None, force: bool = False) -> Path:
+             lidar_spec: LidarSpec | None = None, force: bool = False, instances: int = 1) -> Path:
     """Write the data set to `out` and return `out`. ValueError on invalid arguments.
 
     A partial data set of the same configuration in `out` is resumed, a whole one kept; anything
@@ -289,14 +333,25 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
 
     `lidar_spec` replaces the HDL-64E-like default sensor (its `model` is then set from
     `lidar_model`, "carla" turning it into CARLA's weather-blind ray-cast LiDAR).
+
+    `instances`: 1 with preset "sotif" is the study's protocol (one scripted run per weather, every 5th
+    step). More, or preset "sweep", is instance mode (simulator.space): N instances per weather (sweep: N
+    in all, weather drawn per instance), each recorded around its decision window; `frames` is then unset.
     """
+    asked_weathers = weathers
     weathers = _check_args(preset, frames, weathers, workers, lidar_model)
-    frames = default_frames(preset, len(weathers)) if frames is None else min(frames, max_frames(preset, len(weathers)))
+    space = _check_instances(preset, instances, frames, asked_weathers)
+    if space is not None:
+        frames = 0  # each instance records its own frames
+    elif frames is None:
+        frames = default_frames(preset, len(weathers))
+    else:
+        frames = min(frames, max_frames(preset, len(weathers)))
     if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     base = lidar_spec if lidar_spec is not None else LidarSpec()
     lidar = replace(base, model="physics") if lidar_model == "physics" else carla_spec(base)
-    cfg = GenerateConfig(preset, int(frames), weathers, int(seed), lidar)
+    cfg = GenerateConfig(preset, int(frames), weathers, int(seed), lidar, space=space)
     root = Path(out)
     digest = cfg.digest()
     jobs = [(root, cfg, job, digest) for job in plan_jobs(cfg)]

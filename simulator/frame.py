@@ -6,14 +6,15 @@ the vehicle is hidden or beyond the labelling distance). Training scenes have ne
 
 Worlds, their Embree scenes and the SOTIF trajectories are cached per process. Random
 streams are seeded per frame: the LiDAR's from (seed, scenario, scenario step) for SOTIF so
-that a weather-blind sensor gives the same scan in every weather, the rest from the frame index.
+that a weather-blind sensor gives the same scan in every weather (instance mode: from (seed, scenario,
+instance, step)), the rest from the frame index.
 """
 from __future__ import annotations
 
 import math
 import struct
 import zlib
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -24,12 +25,14 @@ from simulator.camera import render
 from simulator.labels import frame_labels, lidar_boxes
 from simulator.lidar import Pose, scan
 from simulator.raycast import RayScene
-from simulator.scenario import FrameState, sotif_run, training_scene
-from simulator.weather import (WEATHER_PRESETS, precipitation_class, rain_rate_mmh, time_of_day)
+from simulator.scenario import FrameState, run_steps, sotif_run, training_scene
+from simulator.space import SWEEP_WEATHER, Instance, instances, sweep_points, sweep_weather
+from simulator.weather import (WEATHER_PRESETS, WeatherPreset, precipitation_class, rain_rate_mmh, road_water_cover,
+                               time_of_day)
 from simulator.world import build_world
 
-SCENARIO_TAG = {"sotif": 1, "train": 2}
-WORLD_TAG = {"sotif": 11, "train": 12}
+SCENARIO_TAG = {"sotif": 1, "train": 2, "sweep": 3}
+WORLD_TAG = {"sotif": 11, "train": 12, "sweep": 11}  # the sweep drives on the SOTIF set's highway
 TRAIN_FRAMES_PER_WORLD = 100
 MIN_RUN_FRAMES = 27  # the scenario is always simulated to its end (lane change included)
 ROW_COLUMNS = ("frame_id", "split", "scenario", "weather", "time_of_day", "precipitation_class", "cloudiness",
@@ -37,6 +40,9 @@ ROW_COLUMNS = ("frame_id", "split", "scenario", "weather", "time_of_day", "preci
                "wind_intensity", "sun_altitude_angle", "rain_rate_mmh", "scenario_time_s", "ego_speed_mps",
                "slow_car_speed_mps", "lane_change_time_s", "slow_car_label_index", "fast_car_label_index",
                "slow_car_distance_m", "n_points", "n_vehicles", "lidar_model") + fidelity.COLUMNS
+INSTANCE_COLUMNS = ("instance", "instance_key", "sweep_axis", "fog_mor_m", "road_water", "in_window",
+                    "sc_ego_speed_kmh", "sc_slow_speed_kmh", "sc_cutout_gap_m", "sc_lane_change_s",
+                    "sc_lateral_offset_m", "sc_slow_body", "sc_slow_paint", "sc_slow_reflectance", "sc_fast_body")
 _SCENES: dict = {}
 _RUNS: dict = {}
 
@@ -48,12 +54,47 @@ class FrameJob:
     weather: str
     step: int  # recorded step of the SOTIF run (training: = index)
     split: str
-    run_length: int  # recorded frames of the longest SOTIF run
+    run_length: int  # recorded frames of the longest SOTIF run (instance mode: steps of the instance's run)
+    instance: int = -1  # instance mode: the instance within its weather (sweep: within the set)
+    in_window: bool = False  # instance mode: a 10 Hz frame of the decision window
+
+
+def row_columns(cfg) -> tuple[str, ...]:
+    """meta/frames.csv's columns: instance mode (cfg.space set) appends INSTANCE_COLUMNS."""
+    return ROW_COLUMNS + (INSTANCE_COLUMNS if cfg.space is not None else ())
+
+
+def job_instance(cfg, job: FrameJob) -> Instance:
+    """The scenario instance an instance-mode frame belongs to."""
+    return instances(cfg.space, cfg.seed)[job.instance]
+
+
+def job_weather(cfg, job: FrameJob) -> WeatherPreset:
+    """The frame's weather: its preset, or in the sweep set its instance's point."""
+    if job.weather == SWEEP_WEATHER:
+        return sweep_weather(sweep_points(cfg.space, cfg.seed)[job.instance])
+    return WEATHER_PRESETS[job.weather]
+
+
+def instance_run(cfg, index: int) -> list[FrameState]:
+    """Every step of instance ``index``'s run (cached per process); its background traffic is the study's for
+    SOTIF instance 0 and its own stream otherwise."""
+    key = (cfg.road, cfg.sotif, cfg.space, cfg.seed, index)
+    if key not in _RUNS:
+        inst = instances(cfg.space, cfg.seed)[index]
+        sc = inst.sotif_config(cfg.sotif)
+        stream = [cfg.seed, 21] if (index == 0 and not cfg.space.sweep) else [cfg.seed, 21 + 2 * cfg.space.sweep, index]
+        n = run_steps(sc, cfg.space.window_max_s, cfg.space.window_slack_s)
+        if len(_RUNS) >= 512:  # a run is ~100 small FrameStates
+            _RUNS.pop(next(iter(_RUNS)))
+        _RUNS[key] = sotif_run(cfg.road, n, np.random.default_rng(stream), replace(sc, record_every=1),
+                               inst.lateral_offset_m, inst.slow_reflectance)
+    return _RUNS[key]
 
 
 def world_scene(cfg, job: FrameJob) -> RayScene:
     """Cached Embree scene of the world this frame lives in."""
-    variant = 0 if cfg.preset == "sotif" else job.index // TRAIN_FRAMES_PER_WORLD
+    variant = 0 if cfg.preset != "train" else job.index // TRAIN_FRAMES_PER_WORLD
     key = (cfg.road, cfg.seed, cfg.preset, variant)
     if key not in _SCENES:
         if len(_SCENES) >= 2:
@@ -64,6 +105,8 @@ def world_scene(cfg, job: FrameJob) -> RayScene:
 
 
 def frame_state(cfg, job: FrameJob) -> FrameState:
+    if cfg.space is not None:
+        return instance_run(cfg, job.instance)[job.step]
     if cfg.preset == "sotif":
         key = (cfg.road, cfg.sotif, cfg.seed, job.run_length)
         if key not in _RUNS:
@@ -93,8 +136,15 @@ def _fidelity(scene: RayScene, cfg, state: FrameState, points: np.ndarray, weath
                                    weather)
 
 
-def _row(cfg, job: FrameJob, state: FrameState, n_points: int, rows: np.ndarray) -> dict:
-    p = WEATHER_PRESETS[job.weather]
+def _instance_row(cfg, job: FrameJob, p: WeatherPreset) -> dict:
+    """The INSTANCE_COLUMNS of an instance-mode frame."""
+    axis = sweep_points(cfg.space, cfg.seed)[job.instance].axis if job.weather == SWEEP_WEATHER else "preset"
+    return {"instance": job.instance, "instance_key": f"{job.weather}#{job.instance}", "sweep_axis": axis,
+            "fog_mor_m": round(p.lidar_fog_mor_m, 4), "road_water": round(road_water_cover(p), 4),
+            "in_window": int(job.in_window), **job_instance(cfg, job).columns()}
+
+
+def _row(cfg, job: FrameJob, state: FrameState, n_points: int, rows: np.ndarray, p: WeatherPreset) -> dict:
     roles = [v.role for v in state.vehicles]
     idx = {r: int(rows[roles.index(r)]) if r in roles else -1 for r in ("slow", "fast")}
     return {
@@ -110,7 +160,7 @@ def _row(cfg, job: FrameJob, state: FrameState, n_points: int, rows: np.ndarray)
         "slow_car_label_index": idx["slow"], "fast_car_label_index": idx["fast"],
         "slow_car_distance_m": _num(state.info["slow_car_distance_m"]), "n_points": n_points,
         "n_vehicles": len(state.vehicles), "lidar_model": cfg.lidar.model,
-    }
+    } | (_instance_row(cfg, job, p) if cfg.space is not None else {})
 
 
 def _num(v: float) -> float | None:
@@ -143,11 +193,13 @@ def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:
     """Simulate and write one frame; returns its meta row and the files written."""
     scene = world_scene(cfg, job)
     state = frame_state(cfg, job)
-    weather = WEATHER_PRESETS[job.weather]
+    weather = job_weather(cfg, job)
     scene.set_vehicles(state.vehicles)
-    lidar_key = job.step if cfg.preset == "sotif" else job.index
+    lidar_key = [job.step] if cfg.preset == "sotif" else [job.index]
+    if cfg.space is not None:  # the same instance's step scans alike in every weather
+        lidar_key = [job.instance, job.step]
     points = scan(scene, cfg.lidar, state.pose, weather, state.vehicles,
-                  np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 1, lidar_key]))
+                  np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 1, *lidar_key]))
     calib = kitti.kitti_calib(cfg.camera.width, cfg.camera.height)
     image = render(scene, calib.lidar2img(), state.pose, cfg.lidar.mount_height, weather,
                    np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 2, job.index]), cfg.camera)
@@ -156,4 +208,4 @@ def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:
              kitti.atomic_write_bytes(kitti.frame_path(root, "image_2", job.frame_id), encode_png(image)),
              kitti.write_calib(kitti.frame_path(root, "calib", job.frame_id), calib),
              kitti.write_labels(kitti.frame_path(root, "label_2", job.frame_id), labels)]
-    return {**_row(cfg, job, state, len(points), rows), **_fidelity(scene, cfg, state, points, weather)}, files
+    return {**_row(cfg, job, state, len(points), rows, weather), **_fidelity(scene, cfg, state, points, weather)}, files

@@ -14,14 +14,10 @@ import numba
 import numpy as np
 
 from simulator import effects
-from simulator.materials import GROUND, REFLECTIVITY
 from simulator.raycast import RayScene
 from simulator.vehicles import Vehicle
 from simulator.weather import WeatherPreset, lidar_fog_extinction, rain_rate_mmh, road_water_cover
 from simulator.ziggurat import normals
-
-
-REFLECTANCE64 = REFLECTIVITY.astype(np.float64)
 
 
 def hdl64e_elevations() -> tuple[float, ...]:
@@ -342,7 +338,8 @@ def physics_returns(st: dict, near: np.ndarray, dy: dict, scene: RayScene, world
     p_min = spec.min_power
     r_out, i_out, hit, path, power = first_returns(
         st["tfar"], st["primID"], st["Ng"], scene.static_material, near, dy["tfar"], dy["primID"], dy["Ng"],
-        scene.dyn_material, world_dirs, REFLECTANCE64, GROUND, cover, a_rain, a_fog, fog_start,
+        scene.lidar_dyn_material, world_dirs, scene.lidar_reflectivity, scene.lidar_ground, cover, a_rain, a_fog,
+        fog_start,
         p_min, spec.min_range, spec.max_range)
     add_range_noise(r_out, hit, normals(rng, len(hit)), power, p_min, spec.range_noise_m, spec.range_accuracy_m)
     for idx, soft, p_soft in (

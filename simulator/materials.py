@@ -53,6 +53,7 @@ def _tables() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 REFLECTIVITY, ALBEDO, EMISSION = _tables()  # indexed by material id
+REFLECTIVITY64 = REFLECTIVITY.astype(np.float64)
 GROUND = np.zeros(len(REFLECTIVITY), bool)
 GROUND[[ID["asphalt"], ID["lane_marking"], ID["gravel"], ID["grass"]]] = True
 ROAD = np.zeros(len(REFLECTIVITY), bool)
@@ -61,3 +62,19 @@ ROAD[[ID["asphalt"], ID["lane_marking"]]] = True
 
 def paint_id(name: str) -> int:
     return PAINT_BASE + PAINT_NAMES.index(name)
+
+
+def lidar_tables(material: np.ndarray, actor: np.ndarray, vehicles: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The LiDAR's view of the vehicle triangles: (material ids (T,), reflectivity table (float64), ground table).
+
+    A vehicle with a reflectance override (``Vehicle.reflectance``, 905 nm) has its paint triangles moved
+    to a material of its own, appended after the shared table; the camera keeps the paint's albedo. Without
+    overrides the inputs and the shared tables come back unchanged."""
+    over = [(i, v) for i, v in enumerate(vehicles) if v.reflectance is not None]
+    if not over:
+        return material, REFLECTIVITY64, GROUND
+    lidar_mat = material.copy()
+    for k, (i, v) in enumerate(over):
+        lidar_mat[(actor == i) & (material == paint_id(v.paint))] = len(REFLECTIVITY) + k
+    refl = np.concatenate([REFLECTIVITY64, [float(v.reflectance) for _, v in over]])
+    return lidar_mat, refl, np.concatenate([GROUND, np.zeros(len(over), bool)])

@@ -12,6 +12,7 @@ import numpy as np
 from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
+from simulator.materials import lidar_tables
 from simulator.vehicles import Vehicle, world_triangles
 from simulator.world import World
 
@@ -136,6 +137,7 @@ class RayScene:
         self.spheres = (np.zeros((0, 3)), np.zeros(0))  # vehicle bounding spheres: centres (K, 3), radii (K,)
         self.vehicle_triangles: list[np.ndarray] = []
         self.vehicles: list[Vehicle] = []
+        self._lidar_tables()
 
     def set_vehicles(self, vehicles: list[Vehicle]) -> None:
         """Replace the dynamic scene with these vehicles (actor id = list index)."""
@@ -153,10 +155,16 @@ class RayScene:
         if not tris:
             self._dynamic = None
             self.dyn_material, self.dyn_actor = np.zeros(1, np.int64), np.zeros(1, np.int64)
-            return
-        self._dynamic = _scene(np.concatenate(tris))
-        self.dyn_material = np.concatenate(mats).astype(np.int64)
-        self.dyn_actor = np.concatenate(actors).astype(np.int64)
+        else:
+            self._dynamic = _scene(np.concatenate(tris))
+            self.dyn_material = np.concatenate(mats).astype(np.int64)
+            self.dyn_actor = np.concatenate(actors).astype(np.int64)
+        self._lidar_tables()
+
+    def _lidar_tables(self) -> None:
+        """The LiDAR's vehicle materials and tables (materials.lidar_tables: reflectance overrides)."""
+        self.lidar_dyn_material, self.lidar_reflectivity, self.lidar_ground = lidar_tables(
+            self.dyn_material, self.dyn_actor, self.vehicles)
 
     def _candidates(self, origin: np.ndarray, dirs: np.ndarray) -> np.ndarray:
         """Rays that may hit a vehicle (bounding spheres)."""

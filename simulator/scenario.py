@@ -20,6 +20,16 @@ from simulator.road import RoadConfig, lane_center, road_to_world
 from simulator.vehicles import Vehicle, sample_body, sample_dims, sample_paint
 
 EGO_DIMS = (4.7, 1.85, 1.5)
+T_REACT_S = 1.0  # s, driver/system reaction time before braking starts
+DECEL_MPS2 = 4.0  # m/s^2, comfortable-to-firm braking deceleration
+MARGIN_M = 2.0  # m, gap left after braking
+
+
+def stopping_distance(closing_speed_mps: float, t_react: float = T_REACT_S, decel: float = DECEL_MPS2,
+                      margin: float = MARGIN_M) -> float:
+    """Distance (m) the ego needs to match the slow car's speed; a non-closing ego needs only the margin."""
+    dv = max(float(closing_speed_mps), 0.0)
+    return dv * t_react + dv * dv / (2.0 * decel) + margin
 
 
 @dataclass(frozen=True)
@@ -49,10 +59,11 @@ class FrameState:
 
 
 def _vehicle(cfg: RoadConfig, body: str, dims, paint: str, s: float, d: float, speed: float,
-             dd_ds: float = 0.0, role: str = "traffic", oncoming: bool = False) -> Vehicle:
+             dd_ds: float = 0.0, role: str = "traffic", oncoming: bool = False,
+             reflectance: float | None = None) -> Vehicle:
     x, y, h = road_to_world(cfg, np.array(s), np.array(d))
     heading = float(h) + math.atan(dd_ds) + (math.pi if oncoming else 0.0)
-    return Vehicle(body, tuple(float(v) for v in dims), paint, float(x), float(y), heading, speed, role)
+    return Vehicle(body, tuple(float(v) for v in dims), paint, float(x), float(y), heading, speed, role, reflectance)
 
 
 def _acc(gap: float, v: float, v_lead: float, sc: SotifConfig) -> float:
@@ -77,8 +88,11 @@ def _background(sc: SotifConfig, rng: np.random.Generator) -> list[tuple]:
     return [(b, d if d is not None else sample_dims(b, rng), p, s, ln, v, onc) for b, d, p, s, ln, v, onc in out]
 
 
-def sotif_run(road: RoadConfig, frames: int, rng: np.random.Generator, sc: SotifConfig = SotifConfig()) -> list[FrameState]:
-    """Recorded frames of the scenario (deterministic given rng's background traffic)."""
+def sotif_run(road: RoadConfig, frames: int, rng: np.random.Generator, sc: SotifConfig = SotifConfig(),
+              slow_offset: float = 0.0, slow_reflectance: float | None = None) -> list[FrameState]:
+    """Recorded frames of the scenario (deterministic given rng's background traffic). ``slow_offset``:
+    the slow car's lateral offset in its lane (m, left +); ``slow_reflectance``: its paint's 905 nm
+    reflectance for the LiDAR (None: the paint table's)."""
     l_s, l_f = sc.slow_body[1][0], sc.fast_body[1][0]
     d3, d4 = lane_center(road, sc.ego_lane), lane_center(road, sc.ego_lane + 1)
     gap0 = sc.acc_standstill + sc.acc_time_gap * sc.ego_speed
@@ -98,7 +112,8 @@ def sotif_run(road: RoadConfig, frames: int, rng: np.random.Generator, sc: Sotif
         fast_in_lane = abs(d_f - d3) < road.lane_width / 2
         lead_s, lead_l, lead_v = (s_f, l_f, sc.ego_speed) if fast_in_lane else (s_s, l_s, sc.slow_speed)
         if step % sc.record_every == 0:
-            out.append(_sotif_frame(road, sc, t, s_e, v_e, s_f, d_f, slope_f, s_s, bg, t_lc))
+            out.append(_sotif_frame(road, sc, t, s_e, v_e, (s_f, d_f, slope_f), (s_s, slow_offset, slow_reflectance),
+                                    bg))
         a = _acc(lead_s - s_e - (lead_l + EGO_DIMS[0]) / 2, v_e, lead_v, sc)
         v_e = max(0.0, v_e + a * sc.dt)
         s_e += v_e * sc.dt
@@ -109,17 +124,51 @@ def sotif_run(road: RoadConfig, frames: int, rng: np.random.Generator, sc: Sotif
     return out
 
 
-def _sotif_frame(road, sc, t, s_e, v_e, s_f, d_f, slope_f, s_s, bg, t_lc) -> FrameState:
+def _sotif_frame(road, sc, t, s_e, v_e, fast: tuple, slow: tuple, bg) -> FrameState:
+    """fast = (s, d, dd/ds), slow = (s, lateral offset, reflectance or None) of the two scripted cars."""
+    (s_f, d_f, slope_f), (s_s, off_s, refl_s) = fast, slow
     d3 = lane_center(road, sc.ego_lane)
     x, y, h = road_to_world(road, np.array(s_e), np.array(d3))
     pose = Pose(float(x), float(y), float(h))
-    vs = [_vehicle(road, *sc.slow_body, s_s, d3, sc.slow_speed, role="slow"),
+    vs = [_vehicle(road, *sc.slow_body, s_s, d3 + off_s, sc.slow_speed, role="slow", reflectance=refl_s),
           _vehicle(road, *sc.fast_body, s_f, d_f, sc.ego_speed, slope_f, role="fast")]
     for body, dims, paint, s0, lane, speed, onc in bg:
         s = s0 - speed * t if onc else s0 + speed * t
         vs.append(_vehicle(road, body, dims, paint, s, lane_center(road, lane, onc), speed, oncoming=onc))
     info = {"slow_car_speed_mps": sc.slow_speed, "slow_car_distance_m": float(s_s - s_e)}
     return FrameState(pose, v_e, vs, t, info)
+
+
+def window_length_s(gap_m: float, closing_mps: float) -> float:
+    """Seconds from the lane change until a gap of gap_m (m), closing at closing_mps (held), is down to the
+    stopping distance: the latest moment the ego can still start to brake. 0 when it already is; inf when
+    the ego does not close in."""
+    if closing_mps <= 0:
+        return math.inf
+    return max(gap_m - stopping_distance(closing_mps), 0.0) / closing_mps
+
+
+def instance_steps(states: list[FrameState], sc: SotifConfig, lead_in: int, slack_s: float, hz10_max_s: float,
+                   window_max_s: float) -> list[tuple[int, bool]]:
+    """(step, in the 10 Hz window) of the frames an instance records, from its run at every step (states[k] at
+    step k): ``lead_in`` frames at 2 Hz before the lane change; every step from the lane change on for the
+    decision window (window_length_s of the gap, front bumper to rear face, and the closing speed at the lane
+    change) plus ``slack_s``, for at most ``hz10_max_s``; then every ``sc.record_every``-th step up to the
+    window's end plus slack, at most ``window_max_s`` after the lane change."""
+    step_lc = int(round(states[0].info["lane_change_time_s"] / sc.dt))
+    st = states[step_lc]
+    gap = st.info["slow_car_distance_m"] - (sc.slow_body[1][0] + EGO_DIMS[0]) / 2
+    end_s = min(window_length_s(gap, st.ego_speed - sc.slow_speed) + slack_s, window_max_s)
+    last = step_lc + int(round(end_s / sc.dt))
+    last_10hz = step_lc + int(round(min(end_s, hz10_max_s) / sc.dt))
+    lead = [(step_lc - k * sc.record_every, False) for k in range(lead_in, 0, -1) if step_lc >= k * sc.record_every]
+    tail = [(k, False) for k in range(last_10hz + sc.record_every, last + 1, sc.record_every)]
+    return lead + [(k, True) for k in range(step_lc, last_10hz + 1)] + tail
+
+
+def run_steps(sc: SotifConfig, window_max_s: float, slack_s: float) -> int:
+    """Steps an instance's run needs (every step simulated): to its lane change, its longest window and slack."""
+    return int(math.ceil((sc.time_to_trigger + window_max_s + slack_s) / sc.dt)) + 2
 
 
 @dataclass(frozen=True)

@@ -133,6 +133,7 @@ class Vehicle:
     heading: float  # rad, CCW from world +x
     speed: float  # m/s
     role: str = "traffic"  # "slow", "fast" or "traffic"
+    reflectance: float | None = None  # 905 nm reflectance of the paint for the LiDAR; None: materials' table
 
     @property
     def label(self) -> str:

@@ -47,6 +47,7 @@ class WeatherPreset:
     rayleigh_scattering_scale: float = 0.0331
     dust_storm: float = 0.0
     lidar_fog_mor_m: float = 0.0  # physical fog the LiDAR sees (MOR, m); 0 = none (not a CARLA parameter)
+    rain_rate_override_mmh: float | None = None  # physical rain rate (mm/h) instead of the slider's; None = slider
 
     def as_dict(self) -> dict[str, float]:
         return asdict(self)
@@ -95,8 +96,16 @@ def get_preset(name: str) -> WeatherPreset:
 
 
 def rain_rate_mmh(p: WeatherPreset) -> float:
-    """Rain rate in mm/h from CARLA's precipitation slider (see module docstring)."""
+    """Rain rate in mm/h: the weather's physical override, else from CARLA's precipitation slider (see module
+    docstring; the slider reaches MAX_RAIN_RATE_MMH, the override any rate)."""
+    if p.rain_rate_override_mmh is not None:
+        return float(p.rain_rate_override_mmh)
     return MAX_RAIN_RATE_MMH * (p.precipitation / 100.0) ** 2
+
+
+def precipitation_for_rate(rate_mmh: float) -> float:
+    """The precipitation slider (0..100) whose rain rate is ``rate_mmh``, 100 beyond MAX_RAIN_RATE_MMH."""
+    return min(100.0, 100.0 * math.sqrt(max(rate_mmh, 0.0) / MAX_RAIN_RATE_MMH))
 
 
 def time_of_day(p: WeatherPreset) -> str:
