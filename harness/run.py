@@ -103,8 +103,9 @@ def _model_of(tag: str) -> str:
 
 
 PROFILES = {
+    # quick: the study's SOTIF set cut to 42 frames and a 3-instance sweep set (smoke run, numbers mean nothing)
     "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3,
-                       sotif_instances=2, sweep_instances=3),
+                       sweep_instances=3),
     # instance counts: placeholders until the added simulate / predict / evaluate time is measured
     "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20,
                          sotif_instances=6, sweep_instances=60),
@@ -140,8 +141,9 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
     sweep sets are drawn with ``cfg.sotif_instances`` / ``cfg.sweep_instances`` scenario instances (a
     SOTIF set of None instances is the study's one instance per weather, keyed as it always was)."""
     from simulator import generate
-    frames = {"train": cfg.train_frames, "sotif": cfg.sotif_frames, "sweep": None}[preset]
     instances = {"train": None, "sotif": cfg.sotif_instances, "sweep": cfg.sweep_instances}[preset]
+    # an instance set's size is its instance count: frames are not capped
+    frames = None if instances is not None else {"train": cfg.train_frames, "sotif": cfg.sotif_frames}[preset]
     seed = cfg.seed + SIM_SEED_OFFSET[preset]
     out = data_dir / preset
     from simulator.dataset import GENERATOR_VERSION
