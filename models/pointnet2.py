@@ -10,9 +10,7 @@ refinement runs them inside every RoI at once). Every operator accepts empty inp
 - ``ball_queries``: the first ``nsample`` in-radius indices (``TopK`` of the index) of every
   centre, for several radii over one distance matrix, padded with the first neighbour like the
   CUDA op; a ball with no neighbour points at the zero row that ``group_points`` appends. The
-  distances come from one GEMM, ``|c|^2 + |x|^2 - 2 c x^T``, which only nominates candidates:
-  the first ``2 * nsample`` points within the radius plus a rounding band, whose exact distances
-  then decide (so the neighbours are those of the direct ``(c - x)^2`` sum).
+  distances are the direct ``(c - x)^2`` sums, summed axis by axis from ``(M, 1) - (N,)`` rows.
 - ``three_nn_interpolate``: 3-NN inverse-distance interpolation for feature propagation, its
   distance matrix summed axis by axis from ``(N, 1) - (M,)`` broadcasts (an ``(N, 1, 3) - (1, M, 3)``
   one runs three elements at a time: 71 of PointRCNN's 217 ms a frame).
@@ -29,7 +27,6 @@ from torch._higher_order_ops.while_loop import while_loop
 
 from models.base import tracing
 from models.vfe import RowBatchNorm
-from models.voxelize import take_rows
 
 _FAR = 1.0e4  # metres; position of the padding points used by three_nn_interpolate
 
@@ -102,32 +99,22 @@ def farthest_point_sample(xyz: Tensor, num: int) -> Tensor:
     return idx if xyz.dim() == 3 else idx[0, : torch.sym_min(xyz.shape[0], num)]
 
 
-_BAND = 2.0 ** -18  # candidate band of the GEMM distances, relative to |c|^2 + |x|^2 (>= 8 x rounding)
+def _direct_d2(xyz: Tensor, centres: Tensor, pad: int) -> Tensor:
+    """(..., M, N + pad) float32 squared distances m^2 of centres (..., M, 3) to points (..., N, 3)
+    and to ``pad`` padding points _FAR away (so that a TopK of up to ``pad`` entries never needs a
+    wider copy of the matrix), summed x, y, z from (M, 1) - (N + pad,) rows like ``((c - x) ** 2).sum(-1)``.
 
-
-_EMPTY = 1.0e30  # m^2: distance of the padding columns of the candidate matrix (never within a radius)
-
-
-def _candidates(xyz: Tensor, centres: Tensor, pad: int) -> tuple[Tensor, Tensor]:
-    """GEMM squared distances (..., M, N + pad) = |c|^2 + |x|^2 - 2 c x^T of centres (..., M, 3) and
-    points (..., N, 3), followed by ``pad`` columns at _EMPTY (so that a TopK of up to ``pad``
-    entries never needs a wider copy of the matrix), and their rounding band (..., 1, 1)."""
-    c2 = (centres * centres).sum(-1)  # (..., M)
-    x2 = (xyz * xyz).sum(-1)  # (..., N)
-    x2_pad = torch.cat([x2, x2.new_full((*x2.shape[:-1], pad), _EMPTY)], -1)  # (..., N + pad)
-    xyz_pad = torch.cat([xyz, xyz.new_zeros(*xyz.shape[:-2], pad, 3)], -2)  # (..., N + pad, 3)
-    d2 = c2[..., :, None] + x2_pad[..., None, :] - 2.0 * torch.matmul(centres, xyz_pad.transpose(-1, -2))
-    top = torch.cat([c2, x2, c2.new_zeros(*c2.shape[:-1], 1)], -1).amax(-1)  # (...,) largest |.|^2
-    return d2, (2 * top * _BAND)[..., None, None]
-
-
-def _first_within(d2: Tensor, cand: Tensor, limit, n: int, k: int) -> Tensor:
-    """(..., k) float: the k smallest entries of ``cand`` (..., L) (or (L,), broadcast; float
-    indices, exact below 2^24) where d2 < limit, ascending; n where fewer. L >= k.
-
-    A float key broadcast from one row of indices: no int64 (..., L) copy of the indices."""
-    key = torch.where(d2 < limit, cand, torch.full_like(d2, n))  # (..., L)
-    return torch.topk(key, k, dim=-1, largest=False, sorted=True).values
+    The direct form, not the GEMM ``|c|^2 + |x|^2 - 2 c x^T``: 70 m out the GEMM's rounding (about
+    1e-3 m^2) exceeds a 0.1 m ball's r^2 / 10, and no fixed count of nominated candidates then holds
+    the first neighbours of a dense ball."""
+    far = xyz.new_full((*xyz.shape[:-2], pad, 3), _FAR)
+    rows = torch.cat([xyz, far], -2).transpose(-1, -2)  # (..., 3, N + pad) axis-major
+    cols = centres.transpose(-1, -2)  # (..., 3, M)
+    d2 = None
+    for axis in range(3):
+        d = cols[..., axis, :, None] - rows[..., axis, None, :]  # (..., M, N + pad) m
+        d2 = d * d if d2 is None else d2 + d * d
+    return d2
 
 
 def ball_queries(xyz: Tensor, centres: Tensor, radii: Sequence[float],
@@ -141,19 +128,13 @@ def ball_queries(xyz: Tensor, centres: Tensor, radii: Sequence[float],
     appended by ``group_points``). (One frame stays 2-D: a batch axis of 1 over a dynamic point
     count makes the exporter guard on strides.)
     """
-    n, pad = xyz.shape[-2], 2 * max(nsamples)
-    d2, band = _candidates(xyz, centres, pad)  # (..., M, N + pad), (..., 1, 1)
-    order = torch.arange(n + pad, device=xyz.device, dtype=d2.dtype)  # (N + pad,) float point indices
-    padded = torch.cat([xyz, xyz.new_zeros(*xyz.shape[:-2], 1, 3)], -2)  # (..., N + 1, 3)
-    offset = 0
-    if xyz.dim() == 3:  # rows of batch b start at b * (N + 1) in the flattened points
-        offset = (torch.arange(xyz.shape[0], device=xyz.device) * (n + 1))[:, None, None]
+    n, pad = xyz.shape[-2], max(nsamples)
+    d2 = _direct_d2(xyz, centres, pad)  # (..., M, N + pad) m^2, one matrix for every radius
+    order = torch.arange(n + pad, device=xyz.device, dtype=d2.dtype)  # (N + pad,) float indices, exact < 2^24
     out = []
     for radius, nsample in zip(radii, nsamples):
-        cand = _first_within(d2, order, radius * radius + band, n, 2 * nsample)  # (..., M, 2S)
-        near = take_rows(padded.reshape(-1, 3), cand.long() + offset)  # (..., M, 2S, 3) candidate points
-        exact = ((centres[..., :, None, :] - near) ** 2).sum(-1)  # (..., M, 2S) m^2, the direct form
-        first = _first_within(exact, cand, radius * radius, n, nsample).long()  # (..., M, S)
+        key = torch.where(d2 < radius * radius, order, torch.full_like(d2, n))  # (..., M, N + pad)
+        first = torch.topk(key, nsample, dim=-1, largest=False, sorted=True).values.long()  # (..., M, S)
         head = first[..., :1].expand_as(first)  # first neighbour (n if none)
         out.append((torch.where(first < n, first, head), first[..., 0] < n))
     return out

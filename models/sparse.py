@@ -165,7 +165,7 @@ def strided_out_coords(x: SparseTensor, kernel, stride, padding) -> tuple[Tensor
         exists = ((cand % s[axis]) == 0) & (cand >= 0) & (cand < shape[axis] * s[axis])
         axis_view = [1, 1, 1, -1]
         axis_view[axis] = k[axis]
-        lin = lin + (torch.div(cand, s[axis], rounding_mode="floor") * place).reshape(axis_view)
+        lin = lin + (cand // s[axis] * place).reshape(axis_view)  # integer Div: exact at any grid size
         ok = ok & exists.reshape(axis_view)
     uniq = unique_cells(lin[ok], math.prod(shape))  # (V_out,) ascending
     coords = torch.stack([uniq // (h * w), (uniq // w) % h, uniq % w], dim=1)
@@ -188,7 +188,7 @@ def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padd
     s, p = _axis_column(stride), _axis_column(padding)
     num = fine.coords.T[:, None, :] + p - _offset_rows(kernel)  # (3, K, V_fine) = i * s
     valid = all_axes((num % s) == 0)  # (K, V_fine)
-    query = torch.div(num, s, rounding_mode="floor")
+    query = num // s  # (3, K, V_fine) integer Div
     return lookup(coarse.index_grid(), coarse.shape, query, valid, coarse.coords.shape[0])
 
 

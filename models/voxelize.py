@@ -159,7 +159,8 @@ def group_cells(linear: Tensor, cells: int) -> CellGroups:
 
 
 def _coords_of(linear: Tensor, shape: tuple[int, int, int]) -> Tensor:
-    """(V, 3) int64 (z, y, x) from linear indices (V,)."""
+    """(V, 3) int64 (z, y, x) from linear indices (V,) (``//`` and ``%``: integer ``Div`` and ``Mod`` in
+    the graph, exact at any grid size)."""
     _, h, w = shape
     return torch.stack([linear // (h * w), (linear // w) % h, linear % w], dim=1)
 
@@ -183,7 +184,9 @@ def group_order(group: Tensor, groups: int) -> Tensor:
     In the graph, a least-significant-digit radix sort: each pass sorts by one 11-bit digit of the
     group with the current position as tie-break, ``digit * P + position`` (distinct, < 2^31 for
     P <= MAX_POINTS), so every TopK key fits int32 and no TopK tie rule is relied on (OpenVINO's
-    is not stable). Groups below 2^11 take one pass, below 2^22 two.
+    is not stable). Groups below 2^11 take one pass, below 2^22 two. The digits are cut with ``//``
+    and ``remainder``, which export as integer ``Div`` and ``Mod`` (``torch.div(rounding_mode=
+    "floor")`` exports as a float32 ``Div`` + ``Floor``, wrong above 2^24: the kitti grid has 2^26.4 cells).
     """
     if not tracing():
         return torch.sort(group, stable=True).indices
@@ -191,7 +194,7 @@ def group_order(group: Tensor, groups: int) -> Tensor:
     position = torch.arange(p, dtype=torch.long)  # (P,)
     order = position
     for shift in range(0, max(1, (groups - 1).bit_length()), _DIGIT_BITS):
-        digit = torch.remainder(torch.div(take_rows(group, order), 2 ** shift, rounding_mode="floor"), 2 ** _DIGIT_BITS)
+        digit = torch.remainder(take_rows(group, order) // 2 ** shift, 2 ** _DIGIT_BITS)  # integer Div, Mod
         order = take_rows(order, torch.argsort(digit * p + position))  # (P,) stable by this digit
     return order
 

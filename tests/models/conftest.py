@@ -104,3 +104,20 @@ def train_steps():
 def no_box_on_empty_cloud():
     """``no_box_on_empty_cloud(model, onnx_path)``: asserts the RoIs of an empty cloud give no box."""
     return _no_box_on_empty_cloud
+
+
+@pytest.fixture(scope="session")
+def simulated_frame() -> np.ndarray:
+    """(N, 4) float32 one scan of the simulator's highway (about 110k points; ~20 s, once)."""
+    from simulator.lidar import LidarSpec, scan
+    from simulator.raycast import RayScene
+    from simulator.road import RoadConfig
+    from simulator.scenario import training_scene
+    from simulator.weather import WEATHER_PRESETS
+    from simulator.world import build_world
+
+    road, rng = RoadConfig(), np.random.default_rng(0)
+    scene = RayScene(build_world(road, np.random.default_rng(0)))
+    state = training_scene(road, rng)
+    scene.set_vehicles(state.vehicles)
+    return scan(scene, LidarSpec(), state.pose, WEATHER_PRESETS["ClearNoon"], state.vehicles, rng)

@@ -205,3 +205,87 @@ def test_point_batch_norm_matches_batchnorm1d():
     np.testing.assert_allclose(ours(x).detach().numpy(), ref(x).detach().numpy(), atol=1e-5)
     ours.train()
     assert ours(torch.randn(1, 6)).shape == (1, 6)  # one row: running statistics, no error
+
+
+def _profile_balls() -> list[tuple[float, int]]:
+    """Every (radius, nsample) a ball query runs with in any profile of PointRCNN and PV-RCNN."""
+    from models import zoo
+    balls = set()
+    for profile in zoo.PROFILES:
+        rcnn, pv = zoo.config("point_rcnn", profile), zoo.config("pv_rcnn", profile)
+        for radii, nsamples in zip(rcnn.sa_radii, rcnn.sa_nsamples):
+            balls.update(zip(radii, nsamples))
+        balls.update((radius, nsample) for _, radius, nsample, _ in rcnn.rcnn_sa if nsample)
+        balls.update(zip(pv.raw_radii, pv.raw_nsamples))
+        balls.update(zip(pv.grid_radii, pv.grid_nsamples))
+        for radii in pv.level_radii:
+            balls.update(zip(radii, pv.level_nsamples))
+    return sorted(balls)
+
+
+def _dense_cloud_70m(rng: np.random.Generator, n: int = 6000) -> np.ndarray:
+    """(n, 3) float32 points 70 m out: a car's surface sampled at ~1 cm (hundreds of points within
+    0.4 m), ground and scattered returns, in shuffled index order (balls mix near and far points)."""
+    surface = rng.uniform([-2.0, -0.9, 0.0], [2.0, 0.9, 1.5], (n // 2, 3)) * [1.0, 1.0, 1.0]
+    surface[: n // 4, 1] = 0.9  # a side face: a dense plane
+    ground = np.column_stack([rng.uniform(-8, 8, (n // 4, 2)), np.full(n // 4, -0.3)])
+    scatter = rng.normal(0, 2.0, (n - n // 2 - n // 4, 3))
+    cloud = np.concatenate([surface, ground, scatter]) + [70.0, 12.0, -1.4]
+    return cloud[rng.permutation(n)].astype(np.float32)
+
+
+def _ball_reference_all(xyz: np.ndarray, centres: np.ndarray, radius: float, nsample: int):
+    """Vectorised :func:`ball_query_reference`: direct float32 (c - x)^2 sums."""
+    inside = ((centres[:, None, :] - xyz[None, :, :]) ** 2).sum(-1) < np.float32(radius * radius)  # (M, N)
+    idx = np.full((len(centres), nsample), len(xyz), dtype=np.int64)
+    for m in range(len(centres)):
+        chosen = np.flatnonzero(inside[m])[:nsample].tolist()
+        if chosen:
+            idx[m] = chosen + [chosen[0]] * (nsample - len(chosen))
+    return idx, inside.any(1)
+
+
+def test_ball_queries_at_every_profile_radius_70m_out_match_brute_force():
+    """A dense ball far out gets its first neighbours, not points just outside the radius (a
+    candidate band sized from 70 m coordinates once gave 8 of 402 neighbours)."""
+    rng = np.random.default_rng(47)
+    xyz = _dense_cloud_70m(rng)
+    centres = xyz[rng.choice(len(xyz), 300, replace=False)] + rng.normal(0, 0.02, (300, 3)).astype(np.float32)
+    balls = _profile_balls()
+    assert {0.1, 0.4} <= {r for r, _ in balls}  # the kitti radii are among them
+    out = ball_queries(torch.from_numpy(xyz), torch.from_numpy(centres), *zip(*balls))
+    full = 0
+    for (idx, valid), (radius, nsample) in zip(out, balls):
+        ref_idx, ref_valid = _ball_reference_all(xyz, centres, radius, nsample)
+        np.testing.assert_array_equal(idx.numpy(), ref_idx, err_msg=f"radius {radius} nsample {nsample}")
+        np.testing.assert_array_equal(valid.numpy(), ref_valid)
+        full += int((ref_idx[:, -1] != ref_idx[:, 0]).sum())
+    assert full > 0  # the test holds balls with more neighbours than slots
+
+
+class _Balls(torch.nn.Module):
+    def __init__(self, balls):
+        super().__init__()
+        self.radii, self.nsamples = zip(*balls)
+
+    def forward(self, xyz, centres):
+        return [t for pair in ball_queries(xyz, centres, self.radii, self.nsamples) for t in pair]
+
+
+def test_ball_queries_70m_out_export_to_onnx_like_brute_force(tmp_path):
+    rng = np.random.default_rng(48)
+    xyz = _dense_cloud_70m(rng, 3000)
+    centres = xyz[:200] + rng.normal(0, 0.02, (200, 3)).astype(np.float32)
+    balls = _profile_balls()
+    model = _Balls(balls)
+    shapes = ({0: torch.export.Dim("n", min=0)}, {0: torch.export.Dim("m", min=0)})
+    program = torch.export.export(model, (torch.rand(100, 3), torch.rand(10, 3)), dynamic_shapes=shapes,
+                                  strict=False)
+    path = tmp_path / "balls.onnx"
+    torch.onnx.export(program, dynamo=True, verbose=False).save(str(path))
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    got = session.run(None, {session.get_inputs()[0].name: xyz, session.get_inputs()[1].name: centres})
+    for k, (radius, nsample) in enumerate(balls):
+        ref_idx, ref_valid = _ball_reference_all(xyz, centres, radius, nsample)
+        np.testing.assert_array_equal(got[2 * k], ref_idx, err_msg=f"radius {radius} nsample {nsample}")
+        np.testing.assert_array_equal(got[2 * k + 1], ref_valid)
