@@ -21,7 +21,6 @@ import json
 import os
 import signal
 import sys
-import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, replace
@@ -30,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.jobs import interrupted, job_init
 from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
 from harness.stages import Stages, file_digest
 
@@ -257,47 +257,11 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
 def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_hash: str, runtime: str,
                progress: bool, threads: int | None, bars: bool, draw: int = 0) -> tuple[dict, dict]:
     """Train, export, predict and evaluate one model's draw (in the run's process or a job process)."""
-    if _INTERRUPTED:  # a job process that was interrupted takes no further job from the pool's queue
+    if interrupted():  # a job process that was interrupted takes no further job from the pool's queue
         raise KeyboardInterrupt("the run was interrupted")
     stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
     tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
     return tinfo, _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads)
-
-
-_INTERRUPTED = False  # set in a job process by its first SIGINT
-
-
-def _on_interrupt(signum, frame) -> None:
-    """A job process's SIGINT: the first raises KeyboardInterrupt in the job and marks the
-    process as interrupted; a second one (the run forwards Ctrl-C) lets the job's clean-up run."""
-    global _INTERRUPTED
-    if not _INTERRUPTED:
-        _INTERRUPTED = True
-        raise KeyboardInterrupt
-
-
-def _job_init(threads: int, parent: int | None = None) -> None:
-    """Set up a spawned job or training-worker process: ``threads`` threads, freed memory kept,
-    an end once ``parent`` (the pid that started it; default: its parent now) is gone, and
-    :func:`_on_interrupt` for SIGINT."""
-    signal.signal(signal.SIGINT, _on_interrupt)
-    os.environ["OMP_NUM_THREADS"] = str(threads)
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    parent = os.getppid() if parent is None else parent
-    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
-    from harness.malloc import keep_freed_memory
-    keep_freed_memory()
-    import torch
-    torch.set_num_threads(threads)
-
-
-def _exit_with_parent(parent: int, poll_s: float = 0.5) -> None:
-    """End this job process once the run's process is gone: a run killed by a signal (``kill``,
-    ``timeout``) would otherwise leave its jobs training on for many minutes. What they wrote
-    stays (atomic writes), and the next run resumes from it."""
-    while os.getppid() == parent:
-        time.sleep(poll_s)
-    os._exit(1)
 
 
 def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: str, sotif_hash: str, runtime: str,
@@ -346,7 +310,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
     import multiprocessing
     threads = max(1, (os.cpu_count() or 1) // jobs)
     say(f"== {len(names)} models, {jobs} at a time with {threads} thread(s) each: {', '.join(order)}")
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_job_init,
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=job_init,
                              initargs=(threads, os.getpid())) as pool:
         pending = {}
 

@@ -328,8 +328,8 @@ def test_job_processes_end_when_the_run_is_killed(tmp_path):
     # the run's process (here a stand-in) is SIGKILLed while its job process works: the job must not train on
     script = ("import os, sys, time, multiprocessing\n"
               "from concurrent.futures import ProcessPoolExecutor\n"
-              "from harness.run import _job_init\n"
-              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_job_init,"
+              "from harness.jobs import job_init\n"
+              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=job_init,"
               " initargs=(1,))\n"
               "print(pool.submit(os.getpid).result(), flush=True)\n"
               "pool.submit(time.sleep, 120).result()\n")
@@ -359,8 +359,9 @@ def test_an_interrupted_job_process_takes_no_queued_job():
     # queued to the same process is refused instead of training for many minutes
     script = ("import os, signal, time, multiprocessing\n"
               "from concurrent.futures import ProcessPoolExecutor\n"
-              "from harness.run import _job_init, _model_job\n"
-              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_job_init,"
+              "from harness.jobs import job_init\n"
+              "from harness.run import _model_job\n"
+              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=job_init,"
               " initargs=(1,))\n"
               "pid = pool.submit(os.getpid).result()\n"
               "running = pool.submit(time.sleep, 120)\n"
