@@ -88,41 +88,70 @@ def _cache_key(run_dir: Path, tags: dict, n: int, seed: int) -> str:
             continue
         ids = read_image_set(comp["split"])
         folders = _folders(run_dir, comp, tags)
+        preds = [g for fs in folders.values() for f in fs for g in (f, f / "rois")]
         parts += [str(comp["split"]), sorted(folders), _stat_key([comp["root"] / "training" / "label_2"], ids),
-                  _stat_key([f for fs in folders.values() for f in fs], ids)]
+                  _stat_key(preds, ids)]
     return hashlib.sha256(json.dumps(parts, default=str).encode()).hexdigest()[:16]
 
 
-def compute(run_dir: Path, tags: dict[str, list[str]], n: int, seed: int) -> list[dict]:
-    """The pair rows of both comparisons (``harness.pairs.paired_comparison``), ``n`` replicates each."""
-    rows = []
+def compute(run_dir: Path, tags: dict[str, list[str]], n: int, seed: int) -> dict[str, list[dict]]:
+    """``{"rows": pair rows of both comparisons (harness.pairs.paired_comparison, n replicates each),
+    "proposals": per two-stage model and comparison, the AP of its proposals alone (``rois/``) and of its
+    final boxes, means over its draws}``."""
+    rows, proposals = [], []
     for comp in _comparisons(run_dir, tags):
         folders = _folders(run_dir, comp, tags)
         if len(folders) < 2 or not comp["split"].is_file():
             continue
         ids = read_image_set(comp["split"])
-        labels = comp["root"] / "training" / "label_2"
-        gt = load_folder(labels, ids, with_score=False)
+        gt = load_folder(comp["root"] / "training" / "label_2", ids, with_score=False)
         sets = {m: [build_eval_set(gt, load_folder(f, ids, with_score=True)) for f in fs] for m, fs in folders.items()}
         rows += paired_comparison(sets, comp["score"], comp["metric"], comp["data"], _units(comp["root"], ids),
                                   n=n, seed=seed)
-    return rows
+        everything = np.arange(len(ids))
+        for m, fs in folders.items():
+            if all((f / "rois").is_dir() for f in fs):
+                rois = [comp["score"](build_eval_set(gt, load_folder(f / "rois", ids, with_score=True)), everything)
+                        for f in fs]
+                final = [comp["score"](es, everything) for es in sets[m]]
+                proposals.append({"model": m, "metric": comp["metric"], "data": comp["data"], "n_draws": len(fs),
+                                  "proposals": float(np.mean(rois)), "final": float(np.mean(final))})
+    return {"rows": rows, "proposals": proposals}
 
 
-def load_or_compute(run_dir, summary: dict) -> list[dict]:
-    """The run's pair rows: from the cache while its key matches (or the predictions are gone), else computed
-    and cached."""
-    run_dir = Path(run_dir)
+def bootstrap_settings(summary: dict) -> tuple[int, int]:
+    """(replicates, seed) of a run's bootstrap: its config's, else 200 and 0 (``RunConfig``'s defaults)."""
     cfg = summary.get("config") or {}
-    n, seed = int(cfg.get("bootstrap", 200)), int(cfg.get("seed", 0))
+    return int(cfg.get("bootstrap", 200)), int(cfg.get("seed", 0))
+
+
+def load_or_compute(run_dir, summary: dict) -> dict[str, list[dict]]:
+    """The run's pair and proposal rows (:func:`compute`): from the cache while its key matches (or the
+    predictions are gone), else computed and cached."""
+    run_dir = Path(run_dir)
+    n, seed = bootstrap_settings(summary)
     tags = model_tags(summary)
     cache = run_dir / CACHE
     cached = json.loads(cache.read_text()) if cache.is_file() else None
     if not (run_dir / "predictions").is_dir():
-        return cached["rows"] if cached else []
+        return cached or {"rows": [], "proposals": []}
     key = _cache_key(run_dir, tags, n, seed)
     if cached and cached.get("key") == key:
-        return cached["rows"]
-    rows = compute(run_dir, tags, n, seed)
-    atomic_write_text(cache, json.dumps({"key": key, "bootstrap": n, "seed": seed, "rows": rows}, indent=1) + "\n")
-    return rows
+        return cached
+    out = {"key": key, "bootstrap": n, "seed": seed, **compute(run_dir, tags, n, seed)}
+    atomic_write_text(cache, json.dumps(out, indent=1) + "\n")
+    return out
+
+
+def pair_tables(run_dir, summary: dict) -> dict:
+    """``{"pairs": ..., "proposals": ...}`` DataFrames of the run (each only when it has rows): the
+    report's ``tables/pairs.csv`` and ``tables/proposals.csv``."""
+    import pandas as pd
+    from harness.pairs import PAIR_COLUMNS
+    got = load_or_compute(run_dir, summary)
+    out = {}
+    if got.get("rows"):
+        out["pairs"] = pd.DataFrame(got["rows"], columns=list(PAIR_COLUMNS))
+    if got.get("proposals"):
+        out["proposals"] = pd.DataFrame(got["proposals"])
+    return out

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
+from harness import valset
 from harness.jobs import interrupted, job_init
 from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
 from harness.stages import Stages, file_digest
@@ -55,6 +56,7 @@ class RunConfig:
     lidar_model: str = "physics"
     seeds: int = 1  # training draws per model: seeds seed .. seed + seeds - 1
     warm_start: bool = True  # two-stage and fusion models start from their one-stage sibling (WARM_FROM)
+    val_frames: int | None = None  # the val set's held-out training-generator frames (harness.valset); None: none
 
 
 # With ``warm_start``, these models' trainings start from the same draw of their sibling's
@@ -101,8 +103,10 @@ def _model_of(tag: str) -> str:
 
 
 PROFILES = {
-    "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3),
-    "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20),
+    "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3,
+                       val_frames=10),
+    "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20,
+                         val_frames=300),
     # the references train every model from nothing: so does the full profile
     "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1,
                       warm_start=False),
@@ -249,7 +253,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
             # figures (all test frames, possibly beside another job) stay under "prediction"
             "runtime": {"prediction": ort, **{k: v for k, v in probe.items() if k != "seconds"},
                         "onnxruntime": probe.get("onnxruntime") or ort},
-            "results": f"results/{name}.json",
+            "results": f"results/{name}.json", "val": valset.val_summary(run_dir, name),
             "sotif": sotif_view(data, run_dir / "predictions" / name, split="test",
                                 val_predictions_dir=run_dir / "predictions_val" / name)}
 
@@ -261,7 +265,9 @@ def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_h
         raise KeyboardInterrupt("the run was interrupted")
     stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
     tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
-    return tinfo, _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads)
+    ort = _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads)
+    valset.predict_evaluate(stages, cfg, run_dir, tag, runtime, threads)
+    return tinfo, ort
 
 
 def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: str, sotif_hash: str, runtime: str,
@@ -461,6 +467,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         t0 = time.perf_counter()
         train_hash = _simulate(stages, cfg, run_dir / "data", "train")
         sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
+        valset.simulate(stages, cfg, run_dir, DATA_PARTS)
         _gt_database(cfg, run_dir, names)
         done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0)
         summary = {}
@@ -490,7 +497,8 @@ def _draw_summary(run_dir: Path, tag: str, seed: int) -> dict:
     ck = _checkpoint_meta(checkpoint_of(run_dir, tag))
     res = json.loads((run_dir / "results" / f"{tag}.json").read_text())
     return {"tag": tag, "seed": seed, "onnx": f"models/{tag}.onnx", "results": f"results/{tag}.json",
-            "val_ap": ck["val_ap"], "headline": res["headline"], "distance": res["distance"]}
+            "val_ap": ck["val_ap"], "val": valset.val_summary(run_dir, tag), "headline": res["headline"],
+            "distance": res["distance"]}
 
 
 def _wall_span(infos: dict[str, dict]) -> float | None:
