@@ -49,7 +49,7 @@ HOW_TO_READ = {  # one sentence opening each section: how to read it
              "over its training draws, and that range is often wider than the bootstrap interval over frames.",
     **report_pairs.HOW_TO_READ,
 }
-ACCURACY_SECTIONS = ("main", "paper", "robustness", "detail")  # their intros say what a row's training draws are
+ACCURACY_SECTIONS = ("main", "paper", "sotif", "robustness", "detail")  # their intros say what a row's training draws are
 
 
 # Column headers as the reader sees them (the CSV and JSON tables keep the short machine names)
