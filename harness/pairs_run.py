@@ -1,8 +1,8 @@
 """The paired comparisons of a run directory (``harness.pairs`` on its prediction folders and labels).
 
-Two comparisons: val AP (AP40 3D moderate @0.7) on the run's val set (``data/val``, every frame predicted
-into ``predictions_valset/<tag>/``; a run without it: the SOTIF set's val split, ``predictions_val/``) and
-the SOTIF headline on the SOTIF test split (``predictions/<tag>/``). Training draws are the tags
+Two comparisons: val AP (AP40 3D moderate @0.7) on the run's val set (``data/val``, every frame listed
+in ``data/val_frames.txt`` and predicted into ``predictions_valset/<tag>/``; a run without it: the SOTIF
+set's val split, ``predictions_val/``) and the SOTIF headline on the SOTIF test split (``predictions/<tag>/``). Training draws are the tags
 ``results.json`` lists under ``draws`` (else the model's own name). The rows are cached in
 ``results/pairs.json`` with a key made of the bootstrap settings and the size and mtime of every label and
 prediction file read, so a second report reads them back in milliseconds; a run folder without its
@@ -20,10 +20,10 @@ from harness.eval_kitti import build_eval_set
 from harness.evaluate import load_folder
 from harness.kitti import atomic_write_text, read_frames_meta, read_image_set
 from harness.pairs import headline_ap, paired_comparison, val_ap
+from harness.valset import FRAME_LIST, VALSET_PREDICTIONS
 
 PAIRS_VERSION = 1  # bumped when a change alters the rows of the same predictions
 CACHE = Path("results") / "pairs.json"
-VALSET_PREDICTIONS = "predictions_valset"  # one folder per draw tag: predictions of every frame of data/val
 
 
 def model_tags(summary: dict) -> dict[str, list[str]]:
@@ -34,11 +34,10 @@ def model_tags(summary: dict) -> dict[str, list[str]]:
 
 def _comparisons(run_dir: Path, tags: dict[str, list[str]]) -> list[dict]:
     """What to compare: metric, score, label root, split file, prediction folder, data description."""
-    val_root = run_dir / "data" / "val"
     sotif = run_dir / "data" / "sotif"
-    if (val_root / "ImageSets" / "val.txt").is_file() and (run_dir / VALSET_PREDICTIONS).is_dir():
-        n = len(read_image_set(val_root / "ImageSets" / "val.txt"))
-        val = (val_root, val_root / "ImageSets" / "val.txt", VALSET_PREDICTIONS,
+    if (run_dir / FRAME_LIST).is_file() and (run_dir / VALSET_PREDICTIONS).is_dir():
+        n = len(read_image_set(run_dir / FRAME_LIST))
+        val = (run_dir / "data" / "val", run_dir / FRAME_LIST, VALSET_PREDICTIONS,
                f"val: {n} held-out training-generator frames")
     else:
         split = sotif / "ImageSets" / "val.txt"

@@ -14,13 +14,13 @@ import json
 from pathlib import Path
 
 from harness.kitti import atomic_write_text, read_frames_meta
-from harness.pairs_run import VALSET_PREDICTIONS
 from harness.stages import Stages, file_digest
 
 VAL_SEED_OFFSET = 2000  # the training set is simulated with seed + 1000, the SOTIF set with seed
 VAL_DATA = Path("data") / "val"
 FRAME_LIST = Path("data") / "val_frames.txt"  # every frame id of data/val, one a line (an ImageSets file)
 RESULTS = "results_valset"
+VALSET_PREDICTIONS = "predictions_valset"  # one folder per draw tag: predictions of every frame of data/val
 
 
 def simulate(stages: Stages, cfg, run_dir: Path, parts: tuple[str, ...]) -> str | None:

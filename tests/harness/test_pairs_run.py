@@ -61,3 +61,16 @@ def test_a_copy_without_predictions_keeps_the_cached_rows(run_dir):
     assert pairs_run.load_or_compute(run_dir, summary(run_dir)) == got
     tables = pairs_run.pair_tables(run_dir, summary(run_dir))
     assert isinstance(tables["pairs"], pd.DataFrame) and len(tables["pairs"]) == 2
+
+
+def test_val_ap_is_compared_on_the_val_set_when_the_run_has_one(run_dir):
+    import shutil
+    shutil.copytree(run_dir / "data" / "sotif", run_dir / "data" / "val")
+    ids = sorted(p.stem for p in (run_dir / "data" / "val" / "training" / "label_2").glob("*.txt"))
+    kitti.atomic_write_text(run_dir / "data" / "val_frames.txt", "".join(f"{i}\n" for i in ids))
+    for name in ("alpha", "beta"):
+        for folder in ("predictions", "predictions_val"):
+            shutil.copytree(run_dir / folder / name, run_dir / "predictions_valset" / name, dirs_exist_ok=True)
+    rows = pairs_run.load_or_compute(run_dir, summary(run_dir))["rows"]
+    assert (rows[0]["metric"], rows[0]["data"], rows[0]["n_units"]) == \
+        ("val_ap3d_moderate", "val: 12 held-out training-generator frames", 12)
