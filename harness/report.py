@@ -18,7 +18,7 @@ import pandas as pd
 from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
-from harness import figures, report_space, sotif, tables
+from harness import figures, report_pairs, report_space, sotif, tables
 from harness.kitti import atomic_write_bytes, atomic_write_text
 
 TEMPLATES = Path(__file__).parent / "templates"
@@ -48,7 +48,9 @@ HOW_TO_READ = {  # one sentence opening each section: how to read it
     "sotif_space": report_space.HOW_TO_READ,
     "draws": "A difference between two models means something only where it is larger than each model's range "
              "over its training draws, and that range is often wider than the bootstrap interval over frames.",
+    **report_pairs.HOW_TO_READ,
 }
+ACCURACY_SECTIONS = ("main", "paper", "sotif", "robustness", "detail")  # their intros say what a row's training draws are
 
 
 # Column headers as the reader sees them (the CSV and JSON tables keep the short machine names)
@@ -71,7 +73,7 @@ COLUMN_NAMES = {
     "n_test": "test frames", "n_val": "val frames", "n_points_mean": "points mean", "n_points_min": "points min",
     "n_points_max": "points max", "mean_range_m_mean": "mean range m", "max_range_m_mean": "max range m",
     "ground_share_mean": "ground share", "rain_rate_mmh": "rain mm/h", "fog_density": "fog density",
-    "time_of_day": "time of day", "precipitation_class": "precipitation",
+    "time_of_day": "time of day", "precipitation_class": "precipitation", **report_pairs.COLUMN_NAMES,
 }
 
 
@@ -132,6 +134,7 @@ def _figure_specs(run: tables.Run, t: dict) -> dict:
             specs["bev"] = ("Bird's-eye view of one test frame per weather (the first after the lane change): points, "
                             "ground truth (green), each model's detections above its operating threshold (dashed).",
                             figures.bev_figure(frames, list(thr)))
+    specs.update(report_pairs.figure_specs(t))
     return {**specs, **report_space.figure_specs(run.summary, t)}
 
 
@@ -185,14 +188,14 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                      "draws, next to the width of the 95% bootstrap interval over frames of draw 0's headline AP "
                      "in its narrowest and widest weather group. The other tables show draw 0.",
                      [("", t["draws"], 1)], [])] if "draws" in t else []
-    return [
+    out = [
         Section("main", "Headline AP per weather preset",
                 "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% intervals by "
                 f"{report_space.ci_method(run.results)} (the SOTIF targets are far and small, so KITTI's "
                 "moderate/hard filters would ignore "
                 "most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"],
                 figures_first=True),
-        *draws,
+        *draws, *[Section(*s) for s in report_pairs.sections(t, run.summary)],
         Section("paper", "KITTI protocol (the paper's tables)",
                 "AP11 and AP40 at IoU 0.7 for 2D bbox, BEV, 3D and AOS with KITTI's easy/moderate/hard filters; "
                 "recall at the proposals (RoI) and refined boxes (RCNN) for two-stage models.",
@@ -236,6 +239,10 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "Seconds per stage, as each job recorded it (stages of parallel model jobs overlap, so they add up "
                 "to more than the wall time).", [("", t["stages"], 1)], []),
     ]
+    for s in out:
+        if s.key in ACCURACY_SECTIONS:
+            s.intro = f"{s.intro} {report_pairs.draws_note(run.summary)}"
+    return out
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -247,7 +254,15 @@ def _overview(run: tables.Run) -> dict:
     total = sum(v for v in (s.get("stage_seconds") or {}).values() if isinstance(v, (int, float)))
     return {"profile": s.get("profile", "?"), "smoke": SMOKE_BANNER if s.get("profile") == "quick" else None,
             "created": s.get("created", "?"), "models": models, "frames": frames, "total_seconds": total or None,
-            "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"]}
+            "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"],
+            "val": _val_set(s), "draws_note": report_pairs.draws_note(s)}
+
+
+def _val_set(summary: dict) -> str:
+    """What the models table's val column was measured on."""
+    val = next((m["val"] for m in summary["models"].values() if isinstance(m.get("val"), dict)), None)
+    return f"the val set ({val['data']})" if val and val.get("data") else \
+        "held-out dry frames of the training generator (the training set's own val split)"
 
 
 def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
@@ -264,7 +279,7 @@ def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, 
     sections = [s for s in _sections(run, t) if any(not df.empty for _, df, _ in s.tables) or
                 any(f in figs for f in s.figures)]
     ctx = {"overview": _overview(run), "sections": sections, "captions": {k: v[0] for k, v in figs.items()},
-           "models_table": t["overview"]}
+           "models_table": report_pairs.with_draw_ranges(t["overview"], run.summary)}
     env_md = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=False,
                          keep_trailing_newline=True)
     md = env_md.get_template("report.md.j2").render(**ctx, images=md_links,

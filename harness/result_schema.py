@@ -82,14 +82,15 @@ _SPACE = {"rule": {"k": NUMBER, "n": NUMBER, "latency_s": NUMBER},  # harness.so
           "frames": Each(ListOf(ANY))}
 _RELIABILITY = {"ece": OPT, "n": NUMBER,  # harness.calibration.reliability
                 "bins": {"count": ListOf(NUMBER), "confidence": ListOf(OPT), "accuracy": ListOf(OPT)}}
+_VAL = {"3d_moderate?": OPT, "n_frames?": OPT}  # the run's val set (harness.valset)
 _MODEL = {
     "results": TEXT, "size_mb?": OPT, "params?": OPT, "runtime?": _RUNTIME, "sotif?": Maybe(Each(_SOTIF_ROW)),
     "train?": Maybe({"seconds?": OPT, "epochs?": OPT, "val_ap?": Maybe({"3d_moderate?": OPT})}),
     "provenance?": Maybe(Each(ANY)), "sotif_space?": Maybe(Each(_SPACE)),
-    "calibration?": Maybe(Each(Each(_RELIABILITY))),
+    "calibration?": Maybe(Each(Each(_RELIABILITY))), "val?": Maybe(_VAL),
 }
-_DRAW = {"seed": ANY, "val_ap?": Maybe({"3d_moderate?": OPT}), "headline?": Maybe({"3d?": Maybe({"0.7?": OPT}),
-                                                                                  "bev?": Maybe({"0.7?": OPT})})}
+_DRAW = {"seed": ANY, "val_ap?": Maybe({"3d_moderate?": OPT}), "val?": Maybe(_VAL),
+         "headline?": Maybe({"3d?": Maybe({"0.7?": OPT}), "bev?": Maybe({"0.7?": OPT})})}
 SUMMARY = {
     "models": Each(_MODEL), "data?": {f"n_{split}_frames?": OPT for split in ("test", "val", "train")},
     "stage_seconds?": Maybe(Each(NUMBER)), "wall_seconds?": OPT, "draws?": Maybe(Each(ListOf(_DRAW))),

@@ -21,7 +21,6 @@ import json
 import os
 import signal
 import sys
-import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, replace
@@ -30,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from harness import valset
+from harness.jobs import interrupted, job_init
 from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
 from harness.stages import Stages, file_digest
 
@@ -57,6 +58,7 @@ class RunConfig:
     warm_start: bool = True  # two-stage and fusion models start from their one-stage sibling (WARM_FROM)
     sotif_instances: int | None = None  # scenario instances per weather of the SOTIF set; None: the study's one
     sweep_instances: int | None = None  # instances of the weather sweep set (data/sweep); None: no sweep set
+    val_frames: int | None = None  # the val set's held-out training-generator frames (harness.valset); None: none
 
 
 # With ``warm_start``, these models' trainings start from the same draw of their sibling's
@@ -105,10 +107,9 @@ def _model_of(tag: str) -> str:
 PROFILES = {
     # quick: the study's SOTIF set cut to 42 frames and a 3-instance sweep set (smoke run, numbers mean nothing)
     "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3,
-                       sweep_instances=3),
-    # instance counts: placeholders until the added simulate / predict / evaluate time is measured
+                       sweep_instances=3, val_frames=10),
     "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20,
-                         sotif_instances=6, sweep_instances=60),
+                         sotif_instances=6, sweep_instances=60, val_frames=300),
     # the references train every model from nothing: so does the full profile
     "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1,
                       warm_start=False),
@@ -271,7 +272,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
                       "val_ap": ck["val_ap"], "val_history": ck["val_history"]},
             # latency measured by the probe with the machine to itself; the prediction stage's own
             # figures (all test frames, possibly beside another job) stay under "prediction"
-            "runtime": runtime, "results": f"results/{name}.json", "sotif": view,
+            "runtime": runtime, "results": f"results/{name}.json", "sotif": view, "val": valset.val_summary(run_dir, name),
             **space_summary(run_dir, name, threshold, runtime)}
 
 
@@ -279,47 +280,13 @@ def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_h
                progress: bool, threads: int | None, bars: bool, draw: int = 0,
                sweep_hash: str | None = None) -> tuple[dict, dict]:
     """Train, export, predict and evaluate one model's draw (in the run's process or a job process)."""
-    if _INTERRUPTED:  # a job process that was interrupted takes no further job from the pool's queue
+    if interrupted():  # a job process that was interrupted takes no further job from the pool's queue
         raise KeyboardInterrupt("the run was interrupted")
     stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
     tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
-    return tinfo, _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads, sweep_hash)
-
-
-_INTERRUPTED = False  # set in a job process by its first SIGINT
-
-
-def _on_interrupt(signum, frame) -> None:
-    """A job process's SIGINT: the first raises KeyboardInterrupt in the job and marks the
-    process as interrupted; a second one (the run forwards Ctrl-C) lets the job's clean-up run."""
-    global _INTERRUPTED
-    if not _INTERRUPTED:
-        _INTERRUPTED = True
-        raise KeyboardInterrupt
-
-
-def _job_init(threads: int, parent: int | None = None) -> None:
-    """Set up a spawned job or training-worker process: ``threads`` threads, freed memory kept,
-    an end once ``parent`` (the pid that started it; default: its parent now) is gone, and
-    :func:`_on_interrupt` for SIGINT."""
-    signal.signal(signal.SIGINT, _on_interrupt)
-    os.environ["OMP_NUM_THREADS"] = str(threads)
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    parent = os.getppid() if parent is None else parent
-    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
-    from harness.malloc import keep_freed_memory
-    keep_freed_memory()
-    import torch
-    torch.set_num_threads(threads)
-
-
-def _exit_with_parent(parent: int, poll_s: float = 0.5) -> None:
-    """End this job process once the run's process is gone: a run killed by a signal (``kill``,
-    ``timeout``) would otherwise leave its jobs training on for many minutes. What they wrote
-    stays (atomic writes), and the next run resumes from it."""
-    while os.getppid() == parent:
-        time.sleep(poll_s)
-    os._exit(1)
+    ort = _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads, sweep_hash)
+    valset.predict_evaluate(stages, cfg, run_dir, tag, runtime, threads)
+    return tinfo, ort
 
 
 def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: str, sotif_hash: str, runtime: str,
@@ -368,7 +335,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
     import multiprocessing
     threads = max(1, (os.cpu_count() or 1) // jobs)
     say(f"== {len(names)} models, {jobs} at a time with {threads} thread(s) each: {', '.join(order)}")
-    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=_job_init,
+    with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=job_init,
                              initargs=(threads, os.getpid())) as pool:
         pending = {}
 
@@ -520,6 +487,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         train_hash = _simulate(stages, cfg, run_dir / "data", "train")
         sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
         sweep_hash = _simulate(stages, cfg, run_dir / "data", "sweep") if cfg.sweep_instances else None
+        valset.simulate(stages, cfg, run_dir, DATA_PARTS)
         _gt_database(cfg, run_dir, names)
         done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0, sweep_hash)
         summary = {}
@@ -549,7 +517,8 @@ def _draw_summary(run_dir: Path, tag: str, seed: int) -> dict:
     ck = _checkpoint_meta(checkpoint_of(run_dir, tag))
     res = json.loads((run_dir / "results" / f"{tag}.json").read_text())
     return {"tag": tag, "seed": seed, "onnx": f"models/{tag}.onnx", "results": f"results/{tag}.json",
-            "val_ap": ck["val_ap"], "headline": res["headline"], "distance": res["distance"]}
+            "val_ap": ck["val_ap"], "val": valset.val_summary(run_dir, tag), "headline": res["headline"],
+            "distance": res["distance"]}
 
 
 def _wall_span(infos: dict[str, dict]) -> float | None:

@@ -367,7 +367,7 @@ def overview_table(run: Run, t: dict) -> pd.DataFrame:
                      "stages": "two" if m.get("two_stage") else "one", "camera": bool(m.get("uses_camera")),
                      "epochs": _get(m, "train", "epochs", default=None),
                      "train min": _get(m, "train", "seconds") / 60,
-                     "val AP3D mod": _get(m, "train", "val_ap", "3d_moderate"),
+                     "val AP3D mod": val_ap(m), "val frames": _get(m, "val", "n_frames"),
                      "AP3D": _get(res, "headline", "3d", "0.7"), "AP BEV": _get(res, "headline", "bev", "0.7"),
                      "mRR": rob["mRR"].get(name, np.nan) if len(rob) else np.nan,
                      "SOTIF pass": f"{int((judged['verdict'] == 'pass').sum())}/{len(judged)}" if len(judged) else None,
@@ -415,6 +415,14 @@ def mean_range(values: list) -> dict:
     return {"mean": float(np.nanmean(v)), "min": float(np.nanmin(v)), "max": float(np.nanmax(v))}
 
 
+def val_ap(entry: dict) -> float:
+    """AP40 3D moderate @0.7 on the run's val set (``harness.valset``) of a model or draw entry of
+    results.json; a run without one: the checkpoint's, on the training set's own val split."""
+    if isinstance(entry.get("val"), dict):
+        return _get(entry, "val", "3d_moderate")
+    return _get(entry, "val_ap", "3d_moderate") if "val_ap" in entry else _get(entry, "train", "val_ap", "3d_moderate")
+
+
 def draws_table(run: Run) -> pd.DataFrame:
     """With several training draws per model (``run --seeds K``): per model, the mean and range over
     the draws of the val AP40 3D moderate and the headline AP40 3D / BEV @0.7, next to the 95%
@@ -425,7 +433,7 @@ def draws_table(run: Run) -> pd.DataFrame:
         ci = [row["headline_ci95"]["3d"] for row in group_rows(run.results.get(name, {}), "weather").values()]
         widths = [hi - lo for lo, hi in ci]
         row = {"model": name, "draws": len(draws), "seeds": ",".join(str(d["seed"]) for d in draws)}
-        for key, values in (("val AP3D mod", [_get(d, "val_ap", "3d_moderate", default=None) for d in draws]),
+        for key, values in (("val AP3D mod", [val_ap(d) for d in draws]),
                             ("AP3D", [_get(d, "headline", "3d", "0.7", default=None) for d in draws]),
                             ("AP BEV", [_get(d, "headline", "bev", "0.7", default=None) for d in draws])):
             row.update({f"{key} {k}": v for k, v in mean_range(values).items()})
@@ -437,6 +445,7 @@ def draws_table(run: Run) -> pd.DataFrame:
 
 def build_tables(run: Run) -> dict[str, pd.DataFrame]:
     """Every table of the report, by name (empty DataFrames for parts the run does not have)."""
+    from harness.pairs_run import pair_tables
     weather = group_table(run.results, "weather")
     matrix = headline_matrix(weather)
     sotif = sotif_table(run.summary, order=list(matrix.index))
@@ -453,6 +462,8 @@ def build_tables(run: Run) -> dict[str, pd.DataFrame]:
         **({"draws": draws_table(run)} if run.summary.get("draws") else {}),
         # only with scenario-space results (harness.report_space)
         **{k: v for k, v in report_space.build(run.summary).items() if not v.empty},
+        # the paired comparisons and proposals-alone AP, from the prediction folders (cached: harness.pairs_run)
+        **pair_tables(run.run_dir, run.summary),
     }
     return {"overview": overview_table(run, t), **t}
 

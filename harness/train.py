@@ -403,8 +403,8 @@ def convergence_line(history: list) -> str:
 def _worker(rank: int, world: int, tmp: str, threads: int, parent: int, args: tuple, progress: bool) -> None:
     """Data-parallel worker ``rank`` (of ``world``, spawned by ``_fit_data_parallel``, which shares
     the folder ``tmp`` with it); rank 0 writes the checkpoint and shows the progress bar."""
-    from harness.run import _job_init
-    _job_init(threads, parent)
+    from harness.jobs import job_init
+    job_init(threads, parent)
     model, data, out, profile, epochs, seed, aug, init_from = args
     dist.init_process_group("gloo", init_method=f"file://{tmp}/store", rank=rank, world_size=world,
                             timeout=timedelta(minutes=30))

@@ -95,7 +95,7 @@ def test_render_writes_a_self_contained_report(rendered):
     assert not re.search(r"https?://|<script|<link", html)
     srcs = re.findall(r'src="([^"]*)"', html)
     assert srcs and all(s.startswith("data:image/png;base64,") for s in srcs)
-    assert len(srcs) == 6  # heatmap, AP/latency, PR curves, AP/distance, data per weather, BEV
+    assert len(srcs) == 7  # heatmap, AP/latency, PR curves, AP/distance, data per weather, BEV, paired differences
     # the reader sees what was run, then the heatmap, then the main table, then the rest
     pos = [html.index(s) for s in ("profile</b> quick", "alpha, beta", "Models at a glance", 'alt="heatmap"', "HardRainNight", 'id="paper"')]
     assert pos == sorted(pos)

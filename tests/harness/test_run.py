@@ -16,7 +16,7 @@ from dataclasses import replace
 from harness.run import PROFILES, RunConfig, resolve, run
 
 TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2,
-                 jobs=1)
+                 jobs=1, val_frames=3)
 
 
 def stage_keys(run_dir):
@@ -32,7 +32,7 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     with pytest.raises(KeyboardInterrupt):
         run(models=["pointpillars"], out=out, progress=False, config=TINY)
     done = stage_keys(out)
-    assert set(done) == {"simulate_train", "simulate_sotif"}
+    assert set(done) == {"simulate_train", "simulate_sotif", "simulate_val"}
     monkeypatch.undo()
     # 2. resumed, two models in two job processes: the simulation is not redone, the rest runs to the report
     calls = []
@@ -64,6 +64,11 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     for rel in ("config.json", "models/pointpillars.onnx", "predictions/pointpillars/predict.json",
                 "results/pointpillars.json", "tables/weather_headline.csv", "report.md", "index.html"):
         assert (out / rel).is_file(), rel
+    import pandas as pd
+    pairs = pd.read_csv(out / "tables/pairs.csv")  # the two models on the val set and the SOTIF test split
+    assert pairs[["model_a", "model_b", "metric"]].values.tolist() == [
+        ["pointpillars", "point_rcnn", "val_ap3d_moderate"], ["pointpillars", "point_rcnn", "headline_ap3d"]]
+    assert pairs["data"][0] == "val: 3 held-out training-generator frames" and (pairs["n_draws_a"] == 1).all()
     res = json.loads((out / "results/pointpillars.json").read_text())
     assert set(res["groups_by"]) == {"weather", "time_of_day", "precipitation_class"}
     from harness.kitti import read_frames_meta, read_image_set
@@ -85,12 +90,14 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     monkeypatch.setattr("harness.evaluate.EVALUATOR_VERSION", 1000)
     run(models=two, out=out, progress=False, config=replace(TINY, jobs=2), jobs=1)
     after = stage_keys(out)
-    assert {k for k in after if after[k] != before[k]} == {"evaluate_pointpillars", "evaluate_point_rcnn"}
+    assert {k for k in after if after[k] != before[k]} == {f"evaluate{v}_{m}" for v in ("", "_valset")
+                                                           for m in ("pointpillars", "point_rcnn")}
     # 5. two training draws: draw 0 is the run's model, resumed as it is; draw 1 trains with seed 1 into its own files
     run(models=["pointpillars"], out=out, progress=False, config=TINY, seeds=2)
     again = stage_keys(out)
     assert {k for k in again if again[k] != after.get(k)} == {f"{s}_pointpillars.seed1" for s in
-                                                              ("train", "export", "predict", "predict_val", "evaluate")}
+                                                              ("train", "export", "predict", "predict_val", "evaluate",
+                                                               "predict_valset", "evaluate_valset")}
     assert torch.load(out / "models/pointpillars.seed1/checkpoint.pt", weights_only=True)["seed"] == 1
     for rel in ("models/pointpillars.seed1.onnx", "predictions/pointpillars.seed1/predict.json",
                 "results/pointpillars.seed1.json", "tables/draws.csv"):
@@ -98,7 +105,7 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     summary = json.loads((out / "results.json").read_text())
     draws = summary["draws"]["pointpillars"]
     assert [d["seed"] for d in draws] == [0, 1] and draws[0]["results"] == "results/pointpillars.json"
-    import pandas as pd
+    assert [d["val"]["n_frames"] for d in draws] == [3, 3] and summary["models"]["pointpillars"]["val"]["n_frames"] == 3
     table = pd.read_csv(out / "tables/draws.csv").iloc[0]
     aps = [d["headline"]["3d"]["0.7"] for d in draws]
     assert table["draws"] == 2 and table["AP3D mean"] == pytest.approx(np.mean(aps))
@@ -328,8 +335,8 @@ def test_job_processes_end_when_the_run_is_killed(tmp_path):
     # the run's process (here a stand-in) is SIGKILLed while its job process works: the job must not train on
     script = ("import os, sys, time, multiprocessing\n"
               "from concurrent.futures import ProcessPoolExecutor\n"
-              "from harness.run import _job_init\n"
-              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_job_init,"
+              "from harness.jobs import job_init\n"
+              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=job_init,"
               " initargs=(1,))\n"
               "print(pool.submit(os.getpid).result(), flush=True)\n"
               "pool.submit(time.sleep, 120).result()\n")
@@ -359,8 +366,9 @@ def test_an_interrupted_job_process_takes_no_queued_job():
     # queued to the same process is refused instead of training for many minutes
     script = ("import os, signal, time, multiprocessing\n"
               "from concurrent.futures import ProcessPoolExecutor\n"
-              "from harness.run import _job_init, _model_job\n"
-              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=_job_init,"
+              "from harness.jobs import job_init\n"
+              "from harness.run import _model_job\n"
+              "pool = ProcessPoolExecutor(1, mp_context=multiprocessing.get_context('spawn'), initializer=job_init,"
               " initargs=(1,))\n"
               "pid = pool.submit(os.getpid).result()\n"
               "running = pool.submit(time.sleep, 120)\n"
