@@ -109,7 +109,7 @@ PROFILES = {
     "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3,
                        sweep_instances=3, val_frames=10),
     "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20,
-                         sotif_instances=6, sweep_instances=60, val_frames=300),
+                         sotif_instances=2, sweep_instances=12, val_frames=300),
     # the references train every model from nothing: so does the full profile
     "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1,
                       warm_start=False),
