@@ -279,10 +279,11 @@ def format_table(result: dict) -> str:
     KITTI's sampling caps it below 100 (``harness.cells``), that cap."""
     h, d, n = result["headline"], result["distance"], result["n_gt"]
     lines = _kitti_lines(result)
+    heads = (("3D@0.7", "3d", "0.7"), ("BEV@0.7", "bev", "0.7"), ("3D@0.5", "3d", "0.5"))
     lines.append(f"headline AP40 (all distances, no height filter, {n['all']} cars): "
-                 + "  ".join(f"{name} {_short(h[m][t], n['all'], 'cars')}"
-                             for name, m, t in (("3D@0.7", "3d", "0.7"), ("BEV@0.7", "bev", "0.7"), ("3D@0.5", "3d", "0.5"))))
-    lines.append("distance bins 3D@0.7: " + "  ".join(f"{k} m {ap_text(v, n[k], 'cars')}" for k, v in d["3d"]["0.7"].items()))
+                 + "  ".join(f"{name} {_short(h[m][t], n['all'], 'cars')}" for name, m, t in heads))
+    lines.append("distance bins 3D@0.7: "
+                 + "  ".join(f"{k} m {ap_text(v, n[k], 'cars')}" for k, v in d["3d"]["0.7"].items()))
     for stage, rec in result["recall"].items():
         lines.append(f"recall {stage}: " + "  ".join(f"@{k} {100 * v:.1f}%" for k, v in rec.items()))
     if "groups" in result:
@@ -293,7 +294,8 @@ def format_table(result: dict) -> str:
             at_most = f", at most {cap(row['n_car']):.2f}" if binds(row["n_car"]) else ""
             lines.append(f"  {value:<16} {row['headline']['3d']['0.7']:6.2f} [{lo:6.2f}, {hi:6.2f}]  "
                          f"{row['n_frames']} frames, {row['n_car']} cars{at_most}")
-    counts = [*result["n_gt_kitti"].values(), *n.values(), *(r["n_car"] for r in result.get("groups", {}).get("rows", {}).values())]
+    groups = result.get("groups", {}).get("rows", {}).values()
+    counts = [*result["n_gt_kitti"].values(), *n.values(), *(r["n_car"] for r in groups)]
     if any(binds(c) for c in counts):
         lines += ["note: KITTI samples its recall positions among the matches, so over n <= 40 cars AP40 is at most "
                   "(n - 1) / 40 and AP11 at most ceil(n / 4) / 11:",

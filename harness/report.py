@@ -234,7 +234,8 @@ def _overview(run: tables.Run) -> dict:
 def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
     if df.empty:
         return Markup("<p class='empty'>(not available in this run)</p>")
-    cells = readable(mark_capped(df, decimals)).astype(object).map(lambda v: tables.display_cell(v, decimals))  # as in report.md
+    cells = readable(mark_capped(df, decimals)).astype(object)
+    cells = cells.map(lambda v: tables.display_cell(v, decimals))  # as in report.md
     html = cells.to_html(index=False, border=0, classes="tbl")  # in a box that scrolls when the table is wider
     html = html.replace("<td>FAIL", '<td class="fail">FAIL').replace("<td>pass", '<td class="pass">pass')
     return Markup(f'<div class="tablebox">{html}</div>')
@@ -249,7 +250,8 @@ def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, 
     env_md = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=False,
                          keep_trailing_newline=True)
     md = env_md.get_template("report.md.j2").render(**ctx, images=md_links,
-                                                    md=lambda df, digits: tables.to_markdown(readable(mark_capped(df, digits)), digits))
+                                                    md=lambda df, digits: tables.to_markdown(
+                                                        readable(mark_capped(df, digits)), digits))
     md = re.sub(r"\n{3,}", "\n\n", md)
     env_html = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=True)
     uris = {k: "data:image/png;base64," + base64.b64encode(v[1]).decode("ascii") for k, v in figs.items()}
