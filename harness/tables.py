@@ -16,14 +16,12 @@ import numpy as np
 import pandas as pd
 
 from harness import result_schema
-from harness.cells import mark_capped, round_floats
+from harness.cells import DIFFS, DISTANCE_BINS, mark_capped, round_floats
 from harness.kitti import KittiError, atomic_write_text, read_frames_meta
 
 RUN_SCHEMA = "sotif-bench/run/1"
 CLEAN_PRESETS = ("ClearNoon", "ClearSunset")
 CORRUPT_CLASSES = ("rain", "wet")  # precipitation classes whose presets enter the mRR
-DIFFS = ("easy", "moderate", "hard")
-DISTANCE_BINS = ("0-30", "30-50", "50-80")
 
 
 @dataclass
