@@ -17,6 +17,8 @@ from pathlib import Path
 # in 9.1 s instead of 0.75 s.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from harness.cli_help import CommandParser, command_text
+
 BAD_INPUT = 2
 INTERNAL = 1
 FORCE_HELP = "replace the output even when it is an input or a file of another kind (refused otherwise)"
@@ -106,9 +108,20 @@ def _data_root(labels: str) -> Path:
     return path.parent.parent if path.name == "label_2" else path
 
 
+def _model_name(name: str) -> str:
+    """--model as models.zoo spells it (any case), or a ValueError with a suggestion and the valid names."""
+    from harness.names import resolve_names
+    from models.zoo import MODEL_NAMES
+    return resolve_names([name], MODEL_NAMES, "--model", "model")[0]
+
+
 def cmd_simulate(a) -> int:
     from simulator import generate
-    out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=_nonempty_csv(a.weathers, "--weathers"),
+    from harness.names import resolve_names
+    from simulator.weather import WEATHER_PRESETS
+    weathers = _nonempty_csv(a.weathers, "--weathers")
+    weathers = weathers and resolve_names(weathers, list(WEATHER_PRESETS), "--weathers", "weather preset")
+    out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=weathers,
                    seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet, force=a.force,
                    instances=a.instances)
     print(f"data set written to {out}")
@@ -117,6 +130,7 @@ def cmd_simulate(a) -> int:
 
 def cmd_train(a) -> int:
     from harness.train import default_workers, train
+    a.model = _model_name(a.model)
     workers = a.workers or default_workers(a.model, a.profile, a.device)
     ckpt = train(a.model, Path(a.data), Path(a.out), profile=a.profile, epochs=a.epochs, device=a.device,
                  seed=a.seed, progress=not a.quiet, workers=workers, force=a.force, init_from=a.init_from)
@@ -126,9 +140,7 @@ def cmd_train(a) -> int:
 
 def cmd_export(a) -> int:
     from models.export import export_checkpoint
-    from models.zoo import MODEL_NAMES
-    if a.model not in MODEL_NAMES:
-        raise ValueError(f"unknown model {a.model!r}; expected one of {', '.join(MODEL_NAMES)}")
+    a.model = _model_name(a.model)
     from harness.protect import foreign_onnx, refuse_overwrite
     out = _output_file(a.out)
     refuse_overwrite(out, "an ONNX model", {"--checkpoint": a.checkpoint}, foreign_onnx, a.force)
@@ -187,7 +199,12 @@ def cmd_evaluate(a) -> int:
 
 def cmd_run(a) -> int:
     from harness.run import run
-    out = run(profile=a.profile, models=_nonempty_csv(a.models, "--models"), out=Path(a.out) if a.out else None,
+    models = _nonempty_csv(a.models, "--models")
+    if models:
+        from harness.names import resolve_names
+        from models.zoo import MODEL_NAMES
+        models = resolve_names(models, MODEL_NAMES, "--models", "model")
+    out = run(profile=a.profile, models=models, out=Path(a.out) if a.out else None,
               progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, seeds=a.seeds, lidar_model=a.lidar_model,
               warm_start=a.warm_start)
     print(f"report: {out / 'index.html'}")
@@ -219,7 +236,7 @@ def _version() -> str:
 
 
 def _add_simulate(sub, quiet) -> None:
-    s = sub.add_parser("simulate", parents=[quiet],
+    s = sub.add_parser("simulate", parents=[quiet], **command_text("simulate"),
                        help="simulate the SOTIF test set or training scenes as a KITTI data set")
     s.add_argument("--preset", choices=["sotif", "train", "sweep"], required=True,
                    help="sotif: the cut-out scenario under every weather; train: randomised training scenes; "
@@ -233,7 +250,8 @@ def _add_simulate(sub, quiet) -> None:
                    help="write the data set over what the folder holds: a data set of other options, or other "
                         "files (refused otherwise)")
     s.add_argument("--frames", type=int, help="number of frames (default: 547 for sotif, 400 for train)")
-    s.add_argument("--weathers", help="comma-separated CARLA preset names (default: all 21 / the dry ones)")
+    s.add_argument("--weathers", help="comma-separated CARLA preset names, any case, as listed above "
+                                      "(default: all 21 / the dry ones)")
     s.add_argument("--seed", type=_nonnegative_int, default=0,
                    help="random seed; the same seed gives the same bytes (default 0)")
     s.add_argument("--workers", type=int, default=1, help="processes simulating frames at once (default 1)")
@@ -243,8 +261,8 @@ def _add_simulate(sub, quiet) -> None:
 
 
 def _add_train(sub, quiet) -> None:
-    s = sub.add_parser("train", parents=[quiet], help="train one detector on a KITTI data set")
-    s.add_argument("--model", required=True, help="model name, e.g. pointpillars (see the README)")
+    s = sub.add_parser("train", parents=[quiet], help="train one detector on a KITTI data set", **command_text("train"))
+    s.add_argument("--model", required=True, help="model name, one of those listed above")
     s.add_argument("--data", required=True, help="KITTI data set folder with ImageSets/train.txt")
     s.add_argument("--out", required=True, type=_folder, help="folder for checkpoint.pt (a training there resumes)")
     s.add_argument("--force", action="store_true", help=FORCE_HELP)
@@ -264,8 +282,9 @@ def _add_train(sub, quiet) -> None:
 
 
 def _add_export(sub, quiet) -> None:
-    s = sub.add_parser("export", parents=[quiet], help="export a checkpoint to one self-contained ONNX file")
-    s.add_argument("--model", required=True, help="the model name the checkpoint was trained as")
+    s = sub.add_parser("export", parents=[quiet], help="export a checkpoint to one self-contained ONNX file",
+                       **command_text("export"))
+    s.add_argument("--model", required=True, help="the model name the checkpoint was trained as (listed above)")
     s.add_argument("--checkpoint", required=True, help="checkpoint.pt written by train")
     s.add_argument("--out", required=True, type=_path, help="the ONNX file to write")
     s.add_argument("--force", action="store_true", help=FORCE_HELP)
@@ -273,7 +292,8 @@ def _add_export(sub, quiet) -> None:
 
 
 def _add_predict(sub, quiet) -> None:
-    s = sub.add_parser("predict", parents=[quiet], help="run an ONNX detector on a data set split, write KITTI results")
+    s = sub.add_parser("predict", parents=[quiet], help="run an ONNX detector on a data set split, write KITTI results",
+                       **command_text("predict"))
     s.add_argument("--onnx", required=True, help="ONNX file following the contract (README)")
     s.add_argument("--data", required=True, help="KITTI data set folder")
     s.add_argument("--split", default="test", help=SPLIT_HELP + " (default test)")
@@ -283,7 +303,8 @@ def _add_predict(sub, quiet) -> None:
 
 
 def _add_evaluate(sub, quiet) -> None:
-    s = sub.add_parser("evaluate", parents=[quiet], help="KITTI AP, distance bins, recall and per-group tables")
+    s = sub.add_parser("evaluate", parents=[quiet], help="KITTI AP, distance bins, recall and per-group tables",
+                       **command_text("evaluate"))
     s.add_argument("--labels", help="label folder (DATA/training/label_2) or data set folder")
     s.add_argument("--predictions", help="folder of KITTI result files (from predict)")
     s.add_argument("--split", help=SPLIT_HELP + " (default: every label file; with --onnx: test)")
@@ -303,12 +324,12 @@ def _add_evaluate(sub, quiet) -> None:
 
 
 def _add_run(sub, quiet) -> None:
-    s = sub.add_parser("run", parents=[quiet],
+    s = sub.add_parser("run", parents=[quiet], **command_text("run"),
                        help="the whole benchmark: simulate, train, export, predict, evaluate, report")
     s.add_argument("--profile", choices=["quick", "default", "full"], default="default",
                    help="quick: a smoke run in minutes; default: compact models on 2 CPU cores (65-110 min); "
                         "full: the references' settings (GPU)")
-    s.add_argument("--models", help="comma-separated model names (default: all available)")
+    s.add_argument("--models", help="comma-separated model names, as listed above (default: all available)")
     s.add_argument("--out", type=_folder, help="run directory (default reports/<profile>)")
     s.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime", help="inference runtime (default onnxruntime)")
     s.add_argument("--jobs", type=_positive_int,
@@ -326,7 +347,8 @@ def _add_run(sub, quiet) -> None:
 
 
 def _add_report(sub, quiet) -> None:
-    s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report")
+    s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report",
+                       **command_text("report"))
     s.add_argument("run_dir", help="the run folder (reports/NAME)")
     s.add_argument("--sample", metavar="DIR", type=_folder,
                    help="then copy the report, tables/*.csv and figures into DIR (the repository's reports/sample), "
@@ -342,7 +364,7 @@ def build_parser() -> argparse.ArgumentParser:
     quiet = argparse.ArgumentParser(add_help=False)
     quiet.add_argument("--quiet", action="store_true", default=argparse.SUPPRESS,
                        help="no progress bars or progress lines")
-    sub = p.add_subparsers(dest="command", required=True)
+    sub = p.add_subparsers(dest="command", required=True, parser_class=CommandParser)
     _add_simulate(sub, quiet)
     _add_train(sub, quiet)
     _add_export(sub, quiet)
@@ -378,8 +400,10 @@ def _message(text: str) -> None:
 
 def main(argv=None) -> int:
     args = build_parser().parse_args(argv)
+    from harness.compile_notice import announce_compiles
     from harness.malloc import keep_freed_memory
     keep_freed_memory()
+    announce_compiles()
     try:
         return args.func(args)
     except KeyboardInterrupt:

@@ -272,16 +272,29 @@ def get_thresholds(scores: np.ndarray, num_gt: int, num_sample_pts: int = N_SAMP
     return np.asarray(thresholds, dtype=np.float64)
 
 
+def _frames(es: EvalSet, frames) -> np.ndarray:
+    return np.arange(es.n_frames) if frames is None else np.asarray(frames, dtype=np.int64)
+
+
+def _kernel_args(es: EvalSet, metric: str, f: Filter, min_overlap: float) -> tuple:
+    """The arguments the numba kernels take after ``frames``, up to ``min_overlap``."""
+    gt_ign, dt_ign = ignore_flags(es, f)
+    return ((es.gt_off, es.dt_off, es.dc_off, es.ov_off), es.overlaps[metric], gt_ign, dt_ign, es.dt_score,
+            es.gt_alpha, es.dt_alpha, es.dt_bbox, es.dc_bbox, METRICS.index(metric), float(min_overlap))
+
+
+def count_gt(es: EvalSet, f: Filter, frames=None) -> int:
+    """The Car boxes an AP under filter ``f`` counts in ``frames`` (repeated frames count again)."""
+    frame_of_gt = np.repeat(np.arange(es.n_frames), np.diff(es.gt_off))
+    return int(np.bincount(frame_of_gt[ignore_flags(es, f)[0] == 0], minlength=es.n_frames)[_frames(es, frames)].sum())
+
+
 def precision_recall(es: EvalSet, metric: str, f: Filter, min_overlap: float, frames=None,
                      with_aos: bool = False) -> dict:
     """Interpolated precision, recall (and AOS similarity) at the 41 sample points."""
-    frames = np.arange(es.n_frames) if frames is None else np.asarray(frames, dtype=np.int64)
-    gt_ign, dt_ign = ignore_flags(es, f)
-    m = METRICS.index(metric)
-    args = ((es.gt_off, es.dt_off, es.dc_off, es.ov_off), es.overlaps[metric], gt_ign, dt_ign, es.dt_score,
-            es.gt_alpha, es.dt_alpha, es.dt_bbox, es.dc_bbox, m, float(min_overlap))
-    frame_of_gt = np.repeat(np.arange(es.n_frames), np.diff(es.gt_off))
-    num_gt = int(np.bincount(frame_of_gt[gt_ign == 0], minlength=es.n_frames)[frames].sum())
+    frames = _frames(es, frames)
+    args = _kernel_args(es, metric, f, min_overlap)
+    num_gt = count_gt(es, f, frames)
     thresholds = get_thresholds(_matched_scores(frames, *args), num_gt) if num_gt else np.zeros(0)
     pr = _pr_table(frames, *args, thresholds, bool(with_aos and es.compute_aos))
     prec, rec, aos = np.zeros(N_SAMPLE_PTS), np.zeros(N_SAMPLE_PTS), np.zeros(N_SAMPLE_PTS)
@@ -293,6 +306,22 @@ def precision_recall(es: EvalSet, metric: str, f: Filter, min_overlap: float, fr
     for i in range(n):
         prec[i], rec[i], aos[i] = prec[i:].max(), rec[i:].max(), aos[i:].max()
     return {"precision": prec, "recall": rec, "aos": aos, "thresholds": thresholds, "num_gt": num_gt}
+
+
+def score_pr_curve(es: EvalSet, metric: str, f: Filter, min_overlap: float, frames=None,
+                   max_points: int = 200) -> dict:
+    """Precision and recall, not interpolated, at each distinct score of a matched detection (highest
+    first): at threshold t the detections scoring >= t are matched as for the AP (``_frame_statistics``).
+    More distinct scores than ``max_points`` are thinned evenly, the highest and the lowest kept.
+    ``{"score", "precision", "recall"}``: (P,) arrays, empty when nothing matches."""
+    frames = _frames(es, frames)
+    args = _kernel_args(es, metric, f, min_overlap)
+    scores = np.unique(_matched_scores(frames, *args))[::-1]  # (S,) descending
+    if len(scores) > max_points:
+        scores = scores[np.unique(np.linspace(0, len(scores) - 1, max_points).round().astype(np.int64))]
+    pr = _pr_table(frames, *args, np.ascontiguousarray(scores), False)  # (P, 4) tp, fp, fn, similarity
+    tp, fp, fn = pr[:, 0], pr[:, 1], pr[:, 2]
+    return {"score": scores.copy(), "precision": tp / np.maximum(tp + fp, 1), "recall": tp / np.maximum(tp + fn, 1)}
 
 
 def ap_r11(prec: np.ndarray) -> float:

@@ -22,7 +22,12 @@
   are not independent), else "bootstrap over frames (R resamples)".
 - ``groups_by``: the same for every requested column (``run`` asks for weather, time of day and
   precipitation class).
+- ``n_gt_kitti.<easy|moderate|hard>``: the Car boxes each KITTI difficulty counts (the same for every
+  metric and overlap).
 - ``pr_curve``: interpolated precision and recall at the 41 sample points of the headline 3D AP @0.7.
+- ``pr_curve_raw``: ``{score, precision, recall}``, the same metric's precision and recall, not
+  interpolated, at each score of a matched detection (highest first, at most 200 points, the first
+  and the last kept): the curve runs from the best detection to the model's final recall.
 - ``n_frames``, ``n_car``, ``frame_ids``.
 """
 from __future__ import annotations
@@ -34,15 +39,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from harness.cells import DIFFS, ap_text, binds, cap
 from harness.conditions import MAX_LEVELS, condition_labels
-from harness.eval_kitti import DIFFICULTIES, Filter, ap_r40, build_eval_set, frame_overlaps, kitti_ap, precision_recall
+from harness.eval_kitti import (DIFFICULTIES, Filter, ap_r40, build_eval_set, count_gt, frame_overlaps, kitti_ap,
+                                precision_recall, score_pr_curve)
 from harness.kitti import KittiError, Labels, atomic_write_text, read_frames_meta, read_image_set, read_labels
 
 SCHEMA = "sotif-bench/results/1"
 # Bumped whenever a fix changes any number of the same predictions, so that a run directory
 # evaluated before it evaluates again (2: BEV/3D overlaps turn boxes by -rotation_y, as the reference;
-# 3: n_gt, the boxes each headline / distance / moderate AP counts)
-EVALUATOR_VERSION = 3
+# 3: n_gt, the boxes each headline / distance / moderate AP counts; 4: n_gt_kitti, pr_curve_raw)
+EVALUATOR_VERSION = 4
 ALL_DISTANCES = Filter("all")
 DISTANCE_BINS = (Filter("0-30", min_distance=0, max_distance=30), Filter("30-50", min_distance=30, max_distance=50),
                  Filter("50-80", min_distance=50, max_distance=80))
@@ -261,10 +268,13 @@ def evaluate(labels, predictions, split=None, group_by=None, meta=None,
         stage_boxes["roi"] = load_folder(predictions / "rois", ids, with_score=True)
     es = build_eval_set(gt, dt)
     curve = precision_recall(es, "3d", ALL_DISTANCES, 0.7)
+    raw = score_pr_curve(es, "3d", ALL_DISTANCES, 0.7)
     result = {"schema": SCHEMA, "n_frames": len(ids),
               "n_car": int(sum((np.asarray(g.name, dtype=str) == "Car").sum() for g in gt)),
               "kitti": kitti_ap(es), **_summary(es), "recall": _recalls(gt, stage_boxes),
+              "n_gt_kitti": {f.name: count_gt(es, f) for f in DIFFICULTIES},
               "pr_curve": {"precision": curve["precision"].tolist(), "recall": curve["recall"].tolist()},
+              "pr_curve_raw": {k: v.tolist() for k, v in raw.items()},
               "frame_ids": ids}
     columns = [group_by] if isinstance(group_by, str) else list(group_by or [])
     if columns:
@@ -281,19 +291,35 @@ def write_results(path, result: dict) -> Path:
     return atomic_write_text(path, json.dumps(result, indent=1, sort_keys=False) + "\n")
 
 
-def format_table(result: dict) -> str:
-    """A short plain-text table of the main numbers."""
-    lines = ["metric      overlap  AP      easy  moderate   hard"]
+def _short(value: float, n: int, what: str, kind: str = "R40") -> str:
+    """A table cell: "no easy cars", "2.50 (<= 2.50)" under a binding cap, else "57.12"."""
+    if n <= 0:
+        return f"no {what}"
+    return f"{value:.2f} (<= {cap(n, kind):.2f})" if binds(n, kind) else f"{value:.2f}"
+
+
+def _kitti_lines(result: dict) -> list[str]:
+    n = result["n_gt_kitti"]
+    lines = [f"{'KITTI protocol, Car, IoU 0.7':<30}" + "".join(f"{d:<18}" for d in DIFFS),
+             f"{'  cars counted':<30}" + "".join(f"{n[d]:<18}" for d in DIFFS)]
     for metric in ("bbox", "bev", "3d", "aos"):
-        if metric not in result["kitti"]:
-            continue
-        for kind in ("R11", "R40"):
+        for kind in ("R11", "R40") if metric in result["kitti"] else ():
             v = result["kitti"][metric]["0.7"][kind]
-            lines.append(f"{metric:<11} 0.7      {kind}  {v['easy']:6.2f} {v['moderate']:8.2f} {v['hard']:7.2f}")
-    h, d = result["headline"], result["distance"]
-    lines.append(f"headline AP40 (all distances, no height filter) 3D@0.7 {h['3d']['0.7']:.2f}  BEV@0.7 {h['bev']['0.7']:.2f}"
-                 f"  3D@0.5 {h['3d']['0.5']:.2f}")
-    lines.append("distance bins 3D@0.7: " + "  ".join(f"{k} m {v:.2f}" for k, v in d["3d"]["0.7"].items()))
+            lines.append(f"{'  ' + metric + ' AP' + kind[1:]:<30}"
+                         + "".join(f"{_short(v[d], n[d], d + ' cars', kind):<18}" for d in DIFFS))
+    return [line.rstrip() for line in lines]
+
+
+def format_table(result: dict) -> str:
+    """A short plain-text table of the main numbers, each AP beside the Car boxes it counts and, when
+    KITTI's sampling caps it below 100 (``harness.cells``), that cap."""
+    h, d, n = result["headline"], result["distance"], result["n_gt"]
+    lines = _kitti_lines(result)
+    heads = (("3D@0.7", "3d", "0.7"), ("BEV@0.7", "bev", "0.7"), ("3D@0.5", "3d", "0.5"))
+    lines.append(f"headline AP40 (all distances, no height filter, {n['all']} cars): "
+                 + "  ".join(f"{name} {_short(h[m][t], n['all'], 'cars')}" for name, m, t in heads))
+    lines.append("distance bins 3D@0.7: "
+                 + "  ".join(f"{k} m {ap_text(v, n[k], 'cars')}" for k, v in d["3d"]["0.7"].items()))
     for stage, rec in result["recall"].items():
         lines.append(f"recall {stage}: " + "  ".join(f"@{k} {100 * v:.1f}%" for k, v in rec.items()))
     if "groups" in result:
@@ -301,5 +327,14 @@ def format_table(result: dict) -> str:
         lines.append(f"by {g['column']}: headline 3D AP40@0.7 [95% CI]")
         for value, row in g["rows"].items():
             lo, hi = row["headline_ci95"]["3d"]
-            lines.append(f"  {value:<16} {row['headline']['3d']['0.7']:6.2f} [{lo:6.2f}, {hi:6.2f}]  n={row['n_frames']}")
+            at_most = f", at most {cap(row['n_car']):.2f}" if binds(row["n_car"]) else ""
+            lines.append(f"  {value:<16} {row['headline']['3d']['0.7']:6.2f} [{lo:6.2f}, {hi:6.2f}]  "
+                         f"{row['n_frames']} frames, {row['n_car']} cars{at_most}")
+    groups = result.get("groups", {}).get("rows", {}).values()
+    counts = [*result["n_gt_kitti"].values(), *n.values(), *(r["n_car"] for r in groups)]
+    if any(binds(c) for c in counts):
+        lines += ["note: KITTI samples its recall positions among the matches, so over n <= 40 cars AP40 is at most "
+                  "(n - 1) / 40 and AP11 at most ceil(n / 4) / 11:",
+                  "      a value marked <= is held down by the number of cars, not only by the detector; "
+                  "\"no ... cars\": that AP counts no car and means nothing"]
     return "\n".join(lines)

@@ -76,17 +76,21 @@ def scatter_figure(points: pd.DataFrame, x: str, y: str, xlabel: str, ylabel: st
 
 
 def pr_figure(curves: dict[str, tuple[np.ndarray, np.ndarray]], title: str) -> Figure:
-    """Precision over recall per model (``{model: (recall, precision)}``, KITTI's 41 sample points)."""
+    """Precision over recall per model (``{model: (recall, precision)}`` at each score threshold of the
+    matched detections, highest score first: ``pr_curve_raw``), from recall 0 at the first point's
+    precision to the model's final recall, which a dotted line marks."""
     fig = Figure(figsize=(6.5, 4.2), layout="constrained")
     ax = fig.add_subplot()
     for i, (name, (rec, prec)) in enumerate(curves.items()):
-        rec, prec = np.asarray(rec, dtype=float), np.asarray(prec, dtype=float)
-        keep = rec > 0  # unused sample points are zero-filled
-        ax.plot(rec[keep], prec[keep], color=colour(i), label=name, marker=".", lw=1.5)
+        rec, prec = np.asarray(rec, dtype=float), np.asarray(prec, dtype=float)  # (P,), (P,)
+        if not len(rec):
+            continue
+        ax.plot(np.r_[0.0, rec], np.r_[prec[0], prec], color=colour(i), label=f"{name} (recall {rec[-1]:.2f})", lw=1.5)
+        ax.axvline(rec[-1], color=colour(i), ls=":", lw=0.8)
     ax.set(xlabel="recall", ylabel="precision", xlim=(0, 1.02), ylim=(0, 1.02), title=title)
     ax.grid(True, alpha=0.3)
-    if curves:
-        ax.legend(fontsize=8)
+    if ax.lines:
+        ax.legend(fontsize=8, loc="lower left")
     return fig
 
 

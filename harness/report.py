@@ -19,6 +19,7 @@ from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
 from harness import figures, report_pairs, report_space, sotif, tables
+from harness.cells import mark_capped
 from harness.kitti import atomic_write_bytes, atomic_write_text
 
 TEMPLATES = Path(__file__).parent / "templates"
@@ -114,10 +115,12 @@ def _figure_specs(run: tables.Run, t: dict) -> dict:
         specs["ap_latency"] = ("Overall headline AP against onnxruntime latency per frame (p50, log scale).",
                                figures.scatter_figure(pts, "ort_p50_ms", "ap", "onnxruntime latency p50 (ms)",
                                                       "AP40 3D @0.7 (%)", "Accuracy vs latency"))
-    curves = {n: (r["pr_curve"]["recall"], r["pr_curve"]["precision"]) for n, r in run.results.items() if "pr_curve" in r}
+    curves = {n: (r["pr_curve_raw"]["recall"], r["pr_curve_raw"]["precision"]) for n, r in run.results.items()
+              if "pr_curve_raw" in r}
     if curves:
-        specs["pr_curves"] = ("Precision-recall curves of the headline metric (3D IoU 0.7, all distances, 41 points).",
-                              figures.pr_figure(curves, "Precision-recall, 3D @0.7"))
+        specs["pr_curves"] = ("Precision-recall curves of the headline metric (3D IoU 0.7, all distances, no 2D-height "
+                              "filter): precision and recall at each score of a matched detection, down to the "
+                              "model's final recall (dotted).", figures.pr_figure(curves, "Precision-recall, 3D @0.7"))
     dist = pd.DataFrame({n: r["distance"]["3d"]["0.7"] for n, r in run.results.items()
                          if "3d" in r.get("distance", {})}).T
     if not dist.empty:
@@ -268,7 +271,8 @@ def _val_set(summary: dict) -> str:
 def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
     if df.empty:
         return Markup("<p class='empty'>(not available in this run)</p>")
-    cells = readable(df).astype(object).map(lambda v: tables.display_cell(v, decimals))  # as in report.md
+    cells = readable(mark_capped(df, decimals)).astype(object)
+    cells = cells.map(lambda v: tables.display_cell(v, decimals))  # as in report.md
     html = cells.to_html(index=False, border=0, classes="tbl")  # in a box that scrolls when the table is wider
     html = html.replace("<td>FAIL", '<td class="fail">FAIL').replace("<td>pass", '<td class="pass">pass')
     return Markup(f'<div class="tablebox">{html}</div>')
@@ -283,7 +287,8 @@ def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, 
     env_md = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=False,
                          keep_trailing_newline=True)
     md = env_md.get_template("report.md.j2").render(**ctx, images=md_links,
-                                                    md=lambda df, digits: tables.to_markdown(readable(df), digits))
+                                                    md=lambda df, digits: tables.to_markdown(
+                                                        readable(mark_capped(df, digits)), digits))
     md = re.sub(r"\n{3,}", "\n\n", md)
     env_html = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=True)
     uris = {k: "data:image/png;base64," + base64.b64encode(v[1]).decode("ascii") for k, v in figs.items()}

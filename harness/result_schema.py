@@ -64,6 +64,8 @@ RESULTS = {
     "kitti": _KITTI, "headline": {"3d": {"0.7": NUMBER}, "bev?": {"0.7?": OPT}},
     "distance": {"3d?": {"0.7": _BINS}}, "recall": _RECALL,
     "pr_curve?": {"recall": ListOf(NUMBER), "precision": ListOf(NUMBER)},
+    "pr_curve_raw?": {"score": ListOf(NUMBER), "recall": ListOf(NUMBER), "precision": ListOf(NUMBER)},
+    "n_gt_kitti?": {"easy": NUMBER, "moderate": NUMBER, "hard": NUMBER},
     "groups_by?": Each(_GROUPS), "groups?": Maybe(_GROUPS),
 }
 

@@ -551,7 +551,8 @@ def data_stats(run_dir: Path) -> Path:
                      "mean_range_m": float(rng.mean()) if len(pts) else 0.0,
                      "ground_share": float((pts[:, 2] < -1.5).mean()) if len(pts) else 0.0,
                      "mean_intensity": float(pts[:, 3].mean()) if len(pts) else 0.0})
-    df = meta[["frame_id", "split", "weather"]].merge(pd.DataFrame(rows), on="frame_id")
+    from harness.cells import round_floats
+    df = round_floats(meta[["frame_id", "split", "weather"]].merge(pd.DataFrame(rows), on="frame_id"))
     out = run_dir / "tables" / "data_stats.csv"
     atomic_write_text(out, df.to_csv(index=False, lineterminator="\n"))
     return out

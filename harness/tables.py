@@ -16,13 +16,12 @@ import numpy as np
 import pandas as pd
 
 from harness import report_space, result_schema
+from harness.cells import DIFFS, DISTANCE_BINS, mark_capped, round_floats
 from harness.kitti import KittiError, atomic_write_text, read_frames_meta
 
 RUN_SCHEMA = "sotif-bench/run/1"
 CLEAN_PRESETS = ("ClearNoon", "ClearSunset")
 CORRUPT_CLASSES = ("rain", "wet")  # precipitation classes whose presets enter the mRR
-DIFFS = ("easy", "moderate", "hard")
-DISTANCE_BINS = ("0-30", "30-50", "50-80")
 
 
 @dataclass
@@ -102,18 +101,20 @@ PAPER = "paper (weather-blind LiDAR)"
 
 def kitti_ap_table(results: dict) -> pd.DataFrame:
     """The paper's AP table: per model and metric (bbox/BEV/3D/AOS), AP11 and AP40 at IoU 0.7 for
-    easy/moderate/hard (columns ``AP11 easy`` ... ``AP40 hard``), and the paper's own row beside them."""
+    easy/moderate/hard (columns ``AP11 easy`` ... ``AP40 hard``) and the Car boxes each difficulty
+    counts (``cars easy`` ...; empty for results without them), and the paper's own row beside them."""
     cols = [f"AP{kind[1:]} {d}" for kind in ("R11", "R40") for d in DIFFS]
     rows = []
     for name, res in results.items():
+        counts = {f"cars {d}": res.get("n_gt_kitti", {}).get(d, np.nan) for d in DIFFS}
         for metric in ("bbox", "bev", "3d", "aos"):
             if metric in res["kitti"]:
                 v = res["kitti"][metric]["0.7"]
                 rows.append({"model": name, "metric": metric,
-                             **{f"AP{kind[1:]} {d}": v[kind][d] for kind in ("R11", "R40") for d in DIFFS}})
+                             **{f"AP{kind[1:]} {d}": v[kind][d] for kind in ("R11", "R40") for d in DIFFS}, **counts})
         if name in PAPER_AP:
             rows.append({"model": name, "metric": PAPER, **dict(zip(cols, PAPER_AP[name]))})
-    return pd.DataFrame(rows, columns=["model", "metric", *cols])
+    return pd.DataFrame(rows, columns=["model", "metric", *cols, *(f"cars {d}" for d in DIFFS)])
 
 
 def recall_table(results: dict) -> pd.DataFrame:
@@ -469,12 +470,15 @@ def build_tables(run: Run) -> dict[str, pd.DataFrame]:
 
 
 def write_tables(run_dir, run: Run | None = None) -> dict[str, pd.DataFrame]:
-    """Write every table as ``RUN/tables/<name>.csv``, ``.json`` (records) and ``.md``; returns them."""
+    """Write every table as ``RUN/tables/<name>.csv``, ``.json`` (records) and ``.md``; returns them.
+    Floats are rounded as they are written (``cells.round_floats``); the Markdown shows capped and empty
+    AP cells as such (``cells.mark_capped``), the CSV and JSON keep the number beside its count column."""
     run = run or load_run(run_dir)
     out = Path(run_dir) / "tables"
     tables = build_tables(run)
     for name, df in tables.items():
+        df = round_floats(df)
         atomic_write_text(out / f"{name}.csv", df.to_csv(index=False, lineterminator="\n"))
         atomic_write_text(out / f"{name}.json", df.to_json(orient="records", indent=1) + "\n")
-        atomic_write_text(out / f"{name}.md", to_markdown(df))
+        atomic_write_text(out / f"{name}.md", to_markdown(mark_capped(df, 2)))
     return tables

@@ -143,3 +143,87 @@ def test_simulate_into_a_folder_of_other_files_needs_force(tmp_path, monkeypatch
     calls = []
     monkeypatch.setattr(simulator, "generate", lambda out, **k: calls.append(k) or out)
     assert main(argv + ["--force"]) == 0 and calls[0]["force"] is True
+
+
+def _help(argv, capsys) -> str:
+    with pytest.raises(SystemExit) as stop:
+        main([*argv, "--help"])
+    assert stop.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_every_command_says_what_it_does_with_an_example_and_the_valid_names(capsys):
+    from models.zoo import MODEL_NAMES
+    from simulator.weather import WEATHER_PRESETS
+    commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
+    assert set(commands) == {"simulate", "train", "export", "predict", "evaluate", "run", "report"}
+    for name in commands:
+        text = _help([name], capsys)
+        usage, description = text.split("\n\n")[:2]
+        assert usage.startswith(f"usage: sotif-bench {name}") and len(description.split()) >= 15, name
+        example = text.split("example")[-1]
+        assert f"  sotif-bench {name} " in example and example.startswith(("s:\n", ":\n")), name
+        assert max(map(len, text.splitlines())) <= 100, name
+    flat = lambda text: " ".join(text.split())
+    for name in ("train", "export", "run"):
+        assert "Models: " + ", ".join(MODEL_NAMES) + "." in flat(_help([name], capsys))
+    assert ", ".join(WEATHER_PRESETS) in flat(_help(["simulate"], capsys))
+
+
+def test_weather_names_match_in_any_case_and_an_unknown_one_gets_a_suggestion(tmp_path, monkeypatch, capsys):
+    import simulator
+    calls = []
+    monkeypatch.setattr(simulator, "generate", lambda out, **k: calls.append(k) or out)
+    argv = ["--quiet", "simulate", "--preset", "sotif", "--frames", "2", "--out", str(tmp_path / "d")]
+    assert main(argv + ["--weathers", "clearnoon, HARDRAINNIGHT,WetNoon"]) == 0
+    assert calls[0]["weathers"] == ["ClearNoon", "HardRainNight", "WetNoon"]
+    assert main(argv + ["--weathers", "ClearNoon,HardRainNite"]) == 2
+    err = capsys.readouterr().err
+    assert "--weathers: unknown weather preset 'HardRainNite' (did you mean HardRainNight or " in err
+    assert "valid: ClearNoon, CloudyNoon" in err and len(calls) == 1
+    assert main(argv + ["--weathers", "Sunny"]) == 2
+    assert "unknown weather preset 'Sunny'; valid: ClearNoon" in capsys.readouterr().err
+
+
+def test_model_names_match_in_any_case_and_an_unknown_one_gets_a_suggestion(tmp_path, monkeypatch, capsys):
+    import harness.train
+    calls = []
+    monkeypatch.setattr(harness.train, "train", lambda model, *a, **k: calls.append(model) or tmp_path / "c.pt")
+    argv = ["--quiet", "train", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--workers", "1", "--model"]
+    assert main(argv + ["PointPillars"]) == 0 and calls == ["pointpillars"]
+    assert main(argv + ["pointpilars"]) == 2
+    assert "--model: unknown model 'pointpilars' (did you mean pointpillars?); valid: pointpillars, second" in \
+        capsys.readouterr().err
+    assert main(["--quiet", "run", "--models", "second,pvrcnn", "--out", str(tmp_path / "r")]) == 2
+    assert "--models: unknown model 'pvrcnn' (did you mean pv_rcnn" in capsys.readouterr().err
+    assert not (tmp_path / "r").exists()
+
+
+def test_resolve_names_against_plain_lookups():
+    import difflib
+    from harness.names import resolve_names
+    valid = ["ClearNoon", "WetNoon", "HardRainNight"]
+    assert resolve_names(["wetnoon", "CLEARNOON", "HardRainNight"], valid, "--x", "y") == ["WetNoon", "ClearNoon",
+                                                                                          "HardRainNight"]
+    for typo in ("ClearNon", "wetnon", "HardRain", "zzz"):
+        with pytest.raises(ValueError) as e:
+            resolve_names(["ClearNoon", typo], valid, "--x", "thing")
+        close = difflib.get_close_matches(typo.lower(), [v.lower() for v in valid], n=3, cutoff=0.6)
+        assert f"--x: unknown thing {typo!r}" in str(e.value) and ("did you mean" in str(e.value)) == bool(close)
+
+
+def test_a_first_compile_prints_one_notice_and_a_cached_one_none(tmp_path):
+    import os
+    import subprocess
+    import sys
+    from harness.compile_notice import NOTICE
+    (tmp_path / "kern.py").write_text("import numba\n\n\n@numba.njit(cache=True)\ndef f(x):\n    return x + 1\n\n\n"
+                                      "@numba.njit(cache=True)\ndef g(x):\n    return f(x) * 2\n")
+    code = ("from harness.compile_notice import announce_compiles; announce_compiles(); "
+            "import kern; assert kern.g(1) == 4 and kern.f(2) == 3")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), os.getcwd()])}
+    env.pop("NUMBA_CACHE_DIR", None)  # the cache beside kern.py
+    runs = [subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+            for _ in range(2)]
+    assert [r.returncode for r in runs] == [0, 0], runs[0].stderr
+    assert runs[0].stderr.count(NOTICE) == 1 and NOTICE not in runs[1].stderr

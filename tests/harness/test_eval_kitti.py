@@ -218,3 +218,65 @@ def test_overlaps_of_turned_boxes_follow_the_reference_and_the_lidar_frame():
     np.testing.assert_allclose(ov["3d"], d3, atol=1e-9)
     np.testing.assert_allclose(ov["bev"], iou_bev(dt_lidar, gt_lidar), atol=1e-9)
     np.testing.assert_allclose(ov["3d"], iou_3d(dt_lidar, gt_lidar), atol=1e-9)
+
+
+def _brute_force_pr(gt_x, dt_x, dt_score):
+    """Precision and recall at each distinct score of a matched detection, by counting: frames of cars
+    at distinct x (5 m apart) and detections exactly on a car (a hit) or 2.5 m from every car (IoU 0),
+    so a car is found at threshold t when one of its detections scores >= t, and every other kept
+    detection (a miss or a second one on a found car) is a false positive."""
+    n_gt = sum(len(g) for g in gt_x)
+    best = [max((s for x, s in zip(dx, ds) if x == car_x), default=None)  # each car's best score
+            for gx, dx, ds in zip(gt_x, dt_x, dt_score) for car_x in gx]
+    matched = sorted({b for b in best if b is not None}, reverse=True)
+    all_scores = np.concatenate([np.asarray(s, float) for s in dt_score])
+    prec, rec = [], []
+    for t in matched:
+        tp = sum(b is not None and b >= t for b in best)
+        prec.append(tp / (all_scores >= t).sum())
+        rec.append(tp / n_gt)
+    return np.array(matched), np.array(prec), np.array(rec)
+
+
+def test_score_pr_curve_against_brute_force_counting():
+    from harness.eval_kitti import score_pr_curve
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        gt_x, dt_x, dt_score = [], [], []
+        for _ in range(rng.integers(1, 6)):
+            cars = sorted(rng.choice(np.arange(-10, 11, 5), rng.integers(0, 4), replace=False).tolist())
+            dets = [x for x in cars if rng.random() < 0.8] + [x for x in cars if rng.random() < 0.3]  # hits, doubles
+            dets += (rng.choice(np.arange(-10, 11, 5), rng.integers(0, 3)) + 2.5).tolist()  # misses
+            gt_x.append(cars)
+            dt_x.append(dets)
+            dt_score.append(np.round(rng.uniform(0, 1, len(dets)), 2).tolist())  # ties happen
+        es = build_eval_set([labels([car(x) for x in g]) for g in gt_x],
+                            [labels([car(x) for x in d], score=s) for d, s in zip(dt_x, dt_score)])
+        got = score_pr_curve(es, "3d", Filter("all"), 0.7)
+        score, prec, rec = _brute_force_pr(gt_x, dt_x, dt_score)
+        assert np.allclose(got["score"], score) and np.allclose(got["precision"], prec)
+        assert np.allclose(got["recall"], rec)
+
+
+def test_score_pr_curve_of_a_perfect_detector_reaches_recall_1_at_precision_1():
+    from harness.eval_kitti import score_pr_curve
+    gt = [labels([car(-5), car(0), car(5)]), labels([car(2, 30)])]
+    dt = [labels([car(-5), car(0), car(5)], score=[0.9, 0.8, 0.7]), labels([car(2, 30)], score=[0.6])]
+    got = score_pr_curve(build_eval_set(gt, dt), "3d", Filter("all"), 0.7)
+    assert got["score"].tolist() == [0.9, 0.8, 0.7, 0.6] and got["recall"].tolist() == [0.25, 0.5, 0.75, 1.0]
+    assert got["precision"].tolist() == [1.0] * 4
+    empty = score_pr_curve(build_eval_set([labels([car(0)])], [labels([], score=[])]), "3d", Filter("all"), 0.7)
+    assert all(len(v) == 0 for v in empty.values())
+
+
+def test_score_pr_curve_keeps_at_most_max_points_and_both_ends():
+    from harness.eval_kitti import score_pr_curve
+    xs = np.arange(-20, 21, 5)
+    gt = [labels([car(x) for x in xs])] * 40  # 360 cars, each found once with its own score
+    scores = np.linspace(0.99, 0.01, 360).reshape(40, len(xs))
+    es = build_eval_set(gt, [labels([car(x) for x in xs], score=s) for s in scores])
+    full, thin = score_pr_curve(es, "3d", Filter("all"), 0.7, max_points=1000), score_pr_curve(es, "3d", Filter("all"), 0.7)
+    assert len(full["score"]) == 360 and len(thin["score"]) == 200
+    assert thin["score"][0] == full["score"][0] and thin["score"][-1] == full["score"][-1] and thin["recall"][-1] == 1.0
+    idx = np.searchsorted(-full["score"], -thin["score"])  # every kept point is a point of the full curve
+    assert np.array_equal(full["recall"][idx], thin["recall"]) and np.array_equal(full["precision"][idx], thin["precision"])

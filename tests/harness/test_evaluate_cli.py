@@ -1,5 +1,6 @@
 import json
 import os
+import re
 import shutil
 
 import numpy as np
@@ -243,3 +244,28 @@ def test_group_by_a_column_that_names_no_condition_is_refused(tmp_path, dataset,
     with pytest.raises(kitti.KittiError, match=rf"frames\.csv: --group-by '{column}': no such condition column "
                                                r"\(columns: split, weather\)"):
         evaluate(dataset, pred, group_by=column, meta=dataset / "meta" / "frames.csv")
+
+
+def test_labels_as_predictions_on_five_cars_print_the_count_and_the_cap(tmp_path, capsys):
+    from tests.harness.conftest import make_dataset
+    data = make_dataset(tmp_path / "data", n_frames=3, cars=2, seed=4)
+    for i, p in enumerate(sorted((data / "training" / "label_2").glob("*.txt"))):
+        lab = kitti.read_labels(p).select(np.arange(2 if i < 2 else 1))  # 2 + 2 + 1 = 5 cars
+        lab.truncated[:] = 0.2  # above easy's 0.15: no easy car
+        kitti.write_labels(p, lab)
+    pred = copy_as_predictions(data, tmp_path / "pred")
+    assert main(["evaluate", "--labels", str(data), "--predictions", str(pred), "--output", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out
+    res = json.loads((tmp_path / "r.json").read_text())
+    assert res["n_car"] == res["n_gt"]["all"] == 5 and res["headline"]["3d"]["0.7"] == pytest.approx(10.0)
+    assert "(all distances, no height filter, 5 cars): 3D@0.7 10.00 (<= 10.00)" in out
+    assert "over n <= 40 cars AP40 is at most (n - 1) / 40" in out
+    counts = res["n_gt_kitti"]
+    assert counts["easy"] == 0 and re.search(r"cars counted +0 +{moderate} +{hard}\n".format(**counts), out)
+    for d, n in counts.items():
+        assert (f"no {d} cars" in out) == (n == 0)
+    for b, n in res["n_gt"].items():
+        if b != "all":
+            assert (f"{b} m no cars" if n == 0 else f"{b} m {res['distance']['3d']['0.7'][b]:.2f} ({n} car") in out
+    raw = res["pr_curve_raw"]  # the labels themselves: every car found at precision 1
+    assert raw["recall"][-1] == 1.0 and set(raw["precision"]) == {1.0} and raw["score"] == [0.8]

@@ -39,11 +39,14 @@ def test_heatmap_shows_the_matrix_and_is_deterministic():
 
 def test_pr_distance_scatter_plot_their_data():
     rng = np.random.default_rng(1)
-    rec = np.r_[np.sort(rng.uniform(0.01, 1, 30)), np.zeros(11)]
-    prec = rng.uniform(0, 1, 41)
-    fig = figures.pr_figure({"a": (rec, prec)}, "pr")
-    x, y = fig.axes[0].lines[0].get_data()
-    assert np.allclose(x, rec[:30]) and np.allclose(y, prec[:30])
+    rec = np.sort(rng.uniform(0.01, 0.8, 30))  # (P,) at each matched score, highest score first
+    prec = rng.uniform(0, 1, 30)
+    fig = figures.pr_figure({"a": (rec, prec), "none": ([], [])}, "pr")
+    curve, final = fig.axes[0].lines[:2]
+    x, y = curve.get_data()
+    assert np.allclose(x, np.r_[0, rec]) and np.allclose(y, np.r_[prec[0], prec])  # from recall 0 on
+    assert np.allclose(final.get_xdata(), rec[-1]) and len(fig.axes[0].lines) == 2  # the final recall, dotted
+    assert [t.get_text() for t in fig.axes[0].get_legend().get_texts()] == [f"a (recall {rec[-1]:.2f})"]
     ap = pd.DataFrame(rng.uniform(0, 100, (2, 3)), index=["a", "b"], columns=["0-30", "30-50", "50-80"])
     lines = figures.distance_figure(ap, "d").axes[0].lines
     assert np.allclose(lines[1].get_ydata(), ap.loc["b"])
@@ -114,3 +117,14 @@ def test_bev_frames_reads_scans_labels_and_thresholded_predictions(tmp_path):
 def test_bev_figure_handles_few_frames(n):
     frame = figures.BevFrame("w", np.zeros((0, 4), np.float32), np.zeros((0, 7)))
     _png_size(figures.png(figures.bev_figure([frame] * n, [])))
+
+
+def test_pr_figure_of_a_perfect_detector_reaches_recall_1_at_precision_1(tmp_path):
+    from harness.eval_kitti import Filter, build_eval_set, score_pr_curve
+    calib = kitti.kitti_calib()
+    boxes = np.array([[10.0 * (i + 1), 0, -0.9, 4, 1.8, 1.5, 0] for i in range(5)], np.float32)
+    gt = Labels.from_lidar(boxes, calib, ["Car"] * 5)
+    dt = Labels.from_lidar(boxes, calib, ["Car"] * 5, score=np.linspace(0.9, 0.5, 5))
+    raw = score_pr_curve(build_eval_set([gt], [dt]), "3d", Filter("all"), 0.7)
+    x, y = figures.pr_figure({"perfect": (raw["recall"], raw["precision"])}, "pr").axes[0].lines[0].get_data()
+    assert x[0] == 0 and x[-1] == 1.0 and np.all(y == 1.0) and np.all(np.diff(x) > 0)

@@ -118,7 +118,8 @@ def test_report_md_links_written_figures_and_tables(rendered):
     main = pd.read_csv(run_dir / "tables" / "weather_headline.csv")
     res = json.loads((run_dir / "results" / "alpha.json").read_text())
     for weather, row in res["groups_by"]["weather"]["rows"].items():
-        assert main.loc[main.weather == weather, "alpha"].item() == pytest.approx(row["headline"]["3d"]["0.7"])
+        # rounded to 4 decimals as the CSV is written
+        assert main.loc[main.weather == weather, "alpha"].item() == round(row["headline"]["3d"]["0.7"], 4)
         assert f"{row['headline']['3d']['0.7']:.1f} [" in md
 
 
@@ -206,3 +207,17 @@ def test_only_a_quick_run_has_the_banner(tmp_path):
     kitti.atomic_write_text(root / "results.json", json.dumps({**doc, "profile": "default"}))
     report.render(root)
     assert "Smoke run" not in (root / "index.html").read_text() and "Smoke run" not in (root / "report.md").read_text()
+
+
+def test_capped_and_empty_aps_read_as_such_in_both_reports(rendered):
+    from harness.cells import binds, cap
+    run_dir, html = rendered[0], rendered[1].decode("utf-8")
+    md = (run_dir / "report.md").read_text()
+    expected = set()
+    for row in pd.read_csv(run_dir / "tables" / "weather_detail.csv").to_dict("records"):
+        for b in ("0-30", "30-50", "50-80"):
+            n, v = int(row[f"n_gt_{b}m"]), row[f"ap3d_{b}m"]
+            expected.add("n/a (0 cars)" if n == 0 else f"{v:.1f} (≤ {cap(n):.1f})" if binds(n) else f"{v:.1f}")
+    assert any("(" in e for e in expected)  # 9 test frames: capped or empty bins
+    for text in (md, html):
+        assert all(e in text for e in expected)

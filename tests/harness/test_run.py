@@ -108,8 +108,9 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     assert [d["val"]["n_frames"] for d in draws] == [3, 3] and summary["models"]["pointpillars"]["val"]["n_frames"] == 3
     table = pd.read_csv(out / "tables/draws.csv").iloc[0]
     aps = [d["headline"]["3d"]["0.7"] for d in draws]
-    assert table["draws"] == 2 and table["AP3D mean"] == pytest.approx(np.mean(aps))
-    assert table["AP3D min"] == pytest.approx(min(aps)) and table["AP3D max"] == pytest.approx(max(aps))
+    close = lambda v: pytest.approx(v, abs=5e-5)  # the CSV holds 4 decimals
+    assert table["draws"] == 2 and table["AP3D mean"] == close(np.mean(aps))
+    assert table["AP3D min"] == close(min(aps)) and table["AP3D max"] == close(max(aps))
     assert "Training draws" in (out / "report.md").read_text()
     # 6. a damaged output reruns its stage, with a line saying so: a truncated ONNX file is exported again
     # (the export may differ in its bytes, and then everything after it runs again), an emptied and a deleted

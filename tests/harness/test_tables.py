@@ -28,7 +28,8 @@ def _row(rng, n):
 def fake_result(rng, two_stage=False):
     rows = {w: _row(rng, 3) for w in WEATHERS}
     tod = {t: _row(rng, 6) for t in ("Noon", "Sunset", "Night")}
-    res = {"kitti": _kitti(rng), "headline": {"3d": {"0.7": 50.0}}, "distance": {},
+    res = {"kitti": _kitti(rng), "n_gt_kitti": {"easy": 0, "moderate": 7, "hard": 60},
+           "headline": {"3d": {"0.7": 50.0}}, "distance": {},
            "recall": {"rcnn": {"0.3": 0.9, "0.5": 0.7, "0.7": 0.4}},
            "groups": {"column": "weather", "rows": rows},
            "groups_by": {"weather": {"column": "weather", "rows": rows}, "time_of_day": {"column": "time_of_day", "rows": tod}}}
@@ -41,10 +42,12 @@ def test_kitti_and_recall_tables():
     rng = np.random.default_rng(0)
     results = {"one": fake_result(rng), "two": fake_result(rng, two_stage=True)}
     ap = tables.kitti_ap_table(results)
-    assert len(ap) == 2 * 4 and ap.columns[2:].tolist() == [f"AP{n} {d}" for n in (11, 40) for d in ("easy", "moderate", "hard")]
+    assert len(ap) == 2 * 4 and ap.columns[2:8].tolist() == [f"AP{n} {d}" for n in (11, 40) for d in ("easy", "moderate", "hard")]
+    assert ap.columns[8:].tolist() == ["cars easy", "cars moderate", "cars hard"]
     for r in ap.itertuples(index=False):
         ref = results[r.model]["kitti"][r.metric]["0.7"]
-        assert list(r[2:]) == [ref[k][d] for k in ("R11", "R40") for d in ("easy", "moderate", "hard")]
+        assert list(r[2:8]) == [ref[k][d] for k in ("R11", "R40") for d in ("easy", "moderate", "hard")]
+        assert list(r[8:]) == [results[r.model]["n_gt_kitti"][d] for d in ("easy", "moderate", "hard")]
     rec = tables.recall_table(results)
     assert rec["model"].tolist() == ["two"]
     assert rec.iloc[0]["roi@0.5"] == pytest.approx(60.0) and rec.iloc[0]["rcnn@0.3"] == pytest.approx(90.0)
@@ -218,3 +221,56 @@ def test_the_papers_rows_stand_beside_ours():
     rec = tables.recall_table(res).set_index("model")
     assert rec.loc[f"second: {tables.PAPER}", "roi@0.5"] == pytest.approx(36.9)
     assert rec.loc["parta2", "rcnn@0.3"] == 50.0 and np.isnan(rec.loc[f"second: {tables.PAPER}", "roi@0.7"])
+
+
+def test_the_cap_is_what_a_perfect_detector_scores_over_n_cars():
+    from harness.cells import binds, cap
+    from harness.eval_kitti import Filter, build_eval_set, kitti_ap
+    from harness.kitti import Labels
+    for n in (1, 2, 5, 17, 40, 41, 45):
+        xs = np.arange(n) * 6.0  # cars 6 m apart, each found exactly
+        gt = Labels(name=np.array(["Car"] * n, dtype=object), truncated=np.zeros(n), occluded=np.zeros(n, int),
+                    alpha=np.zeros(n), bbox=np.tile([100.0, 150, 200, 250], (n, 1)), dimensions=np.tile([1.5, 1.6, 3.9], (n, 1)),
+                    location=np.c_[xs, np.full(n, 1.6), np.full(n, 20.0)], rotation_y=np.zeros(n))
+        dt = Labels(**{**gt.__dict__, "score": np.linspace(0.9, 0.1, n)})
+        ap = kitti_ap(build_eval_set([gt], [dt]), filters=(Filter("all"),))["3d"]["0.7"]
+        assert cap(n, "R40") == pytest.approx(ap["R40"]["all"]) == pytest.approx(100 * min(n - 1, 40) / 40)
+        assert cap(n, "R11") == pytest.approx(ap["R11"]["all"]) == pytest.approx(100 * np.ceil(min(n, 41) / 4) / 11)
+        assert binds(n) == (n <= 40) == binds(n, "R11")
+    assert cap(0) == 0.0 and binds(0)
+
+
+def test_capped_and_empty_cells_read_as_such():
+    from harness.cells import mark_capped
+    df = pd.DataFrame({"model": ["a", "b", "c", "d"], "ap3d_0-30m": [0.0, 2.5, 63.25, 12.0],
+                       "n_gt_0-30m": [0, 2, 50, np.nan], "ap3d": [1.0, 2.0, 3.0, 4.0]})
+    out = mark_capped(df, 1)
+    assert out["ap3d_0-30m"].tolist() == ["n/a (0 cars)", "2.5 (≤ 2.5)", 63.25, 12.0]
+    assert out["ap3d"].tolist() == [1.0, 2.0, 3.0, 4.0]  # no count column beside it: as it was
+    assert df["ap3d_0-30m"].tolist() == [0.0, 2.5, 63.25, 12.0]  # the input is left alone
+    md = tables.to_markdown(mark_capped(tables.kitti_ap_table({"m": fake_result(np.random.default_rng(3))}), 2))
+    assert md.count("n/a (0 cars)") == 2 * 4 and md.count("(≤ ") == 2 * 4  # easy: no car; moderate: 7 cars
+
+
+def test_files_hold_rounded_numbers_and_counts_beside_the_aps(tmp_path):
+    import re
+    from harness.cells import round_floats
+    assert round_floats(pd.DataFrame({"v": [34.599999999999994, 7.6e-06, 0.000123456, np.nan, 0.0, 1234.56789]}))[
+        "v"].tolist()[:3] == [34.6, 7.6e-06, 0.00012]
+    rng = np.random.default_rng(6)
+    res = fake_result(rng)
+    for row in res["groups_by"]["weather"]["rows"].values():
+        row["headline"]["3d"]["0.7"] = 34.599999999999994
+        row["headline_ci95"]["3d"] = [1 / 3, 2 / 3]
+        row["n_gt"] = {"0-30": 0, "30-50": 2, "50-80": 45}
+    (tmp_path / "results").mkdir()
+    (tmp_path / "results" / "a.json").write_text(json.dumps(res))
+    (tmp_path / "results.json").write_text(json.dumps(_summary()))
+    tables.write_tables(tmp_path)
+    for csv in (tmp_path / "tables").glob("*.csv"):
+        assert not re.search(r"\d\.\d{7,}", csv.read_text()), csv.name
+    detail = pd.read_csv(tmp_path / "tables" / "weather_detail.csv")
+    assert (detail["ap3d"] == 34.6).all() and (detail["ap3d_lo"] == 0.3333).all()
+    assert (detail["n_gt_0-30m"] == 0).all() and pd.api.types.is_float_dtype(detail["ap3d_0-30m"])  # numbers + counts
+    md = (tmp_path / "tables" / "weather_detail.md").read_text()
+    assert md.count("n/a (0 cars)") == len(WEATHERS) and md.count("(≤ 2.50)") == len(WEATHERS)
