@@ -148,9 +148,11 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
     seed = cfg.seed + SIM_SEED_OFFSET[preset]
     out = data_dir / preset
     from simulator.dataset import GENERATOR_VERSION
+    # the run's own val set picks the operating thresholds: an instance set is then all test
+    val_share = {"val_share": 0.0} if instances is not None and cfg.val_frames else {}
     key = {"preset": preset, "frames": frames, "seed": seed, "lidar": cfg.lidar_model, "generator": GENERATOR_VERSION,
-           **({"instances": instances} if instances is not None else {})}
-    more = {"instances": instances} if instances is not None else {}
+           **({"instances": instances} if instances is not None else {}), **val_share}
+    more = {"instances": instances, **val_share} if instances is not None else {}
     # force: the folder is the run's own, and a changed key (e.g. another --lidar-model) simulates it
     # again over the data set of the old one; a partial one of the same key still resumes
     stages.run(f"simulate_{preset}", key, lambda: {"out": str(generate(
@@ -260,7 +262,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
     ck = _checkpoint_meta(checkpoint_of(run_dir, name))
     data = run_dir / "data" / "sotif"
     view = sotif_view(data, run_dir / "predictions" / name, split="test",
-                      val_predictions_dir=run_dir / "predictions_val" / name)
+                      val_predictions_dir=run_dir / "predictions_val" / name, **valset.threshold_of(run_dir, name))
     runtime = {"prediction": ort, **{k: v for k, v in probe.items() if k != "seconds"},
                "onnxruntime": probe.get("onnxruntime") or ort}
     threshold = next(iter(view.values()))["threshold"]

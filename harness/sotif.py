@@ -127,9 +127,11 @@ def load_meta(data_dir) -> pd.DataFrame:
 
 
 def operating_threshold(data_dir, predictions_dir, split: str = "val") -> tuple[float, str]:
-    """(threshold, source): the F1-optimal score threshold at BEV IoU 0.5 on ``split``, or the fallback."""
+    """(threshold, source): the F1-optimal score threshold at BEV IoU 0.5 on ``split`` (a split name of
+    ``data_dir`` or an ImageSets file listing frame ids), or the fallback."""
     data_dir, predictions_dir = Path(data_dir), Path(predictions_dir)
-    ids = _split_ids(data_dir, split)
+    ids = read_image_set(split) if Path(split).suffix == ".txt" else _split_ids(data_dir, split)
+    split = f"{Path(split).name} ({len(ids)} frames)" if Path(split).suffix == ".txt" else split
     present = [fid for fid in ids if (predictions_dir / f"{fid}.txt").is_file()]
     if not present:
         return FALLBACK_THRESHOLD, f"fallback ({split} split empty or not predicted)"
@@ -205,7 +207,7 @@ def _weather_row(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, th
 
 
 def sotif_view(data_dir, predictions_dir, split: str = "test", threshold: float | None = None,
-               val_predictions_dir=None) -> dict:
+               val_predictions_dir=None, threshold_source: str = "given") -> dict:
     """Per weather preset: first detection of the slow car after the lane change vs the stopping distance.
 
     ``{weather: {threshold, threshold_source, lane_change_time_s, n_frames_after_lane_change, detected,
@@ -221,7 +223,7 @@ def sotif_view(data_dir, predictions_dir, split: str = "test", threshold: float 
     if threshold is None:
         threshold, source = operating_threshold(data_dir, val_predictions_dir or predictions_dir)
     else:
-        source = "given"
+        source = threshold_source
     ids = _split_ids(data_dir, split)
     if not ids:
         raise KittiError(data_dir / "ImageSets" / f"{split}.txt", "no frames in the split")

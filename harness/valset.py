@@ -76,3 +76,14 @@ def val_summary(run_dir: Path, tag: str) -> dict | None:
     return {"3d_moderate": r40("3d"), "bev_moderate": r40("bev"), "n_frames": res["n_frames"], "n_car": res["n_car"],
             "data": f"val: {res['n_frames']} held-out training-generator frames",
             "results": f"{RESULTS}/{tag}.json"}
+
+
+def threshold_of(run_dir: Path, tag: str) -> dict:
+    """``{"threshold", "threshold_source"}`` for ``harness.sotif.sotif_view``: the F1-optimal score threshold
+    of a draw on the whole val set; {} without one (the SOTIF set's own val split then picks it)."""
+    from harness.sotif import operating_threshold
+    pred = run_dir / VALSET_PREDICTIONS / tag
+    if not (run_dir / FRAME_LIST).is_file() or not pred.is_dir():
+        return {}
+    thr, source = operating_threshold(run_dir / VAL_DATA, pred, split=run_dir / FRAME_LIST)
+    return {"threshold": thr, "threshold_source": f"{source}, the run's val set"}

@@ -66,7 +66,7 @@ class GenerateConfig:
         return hashlib.sha256(json.dumps(self.as_dict(), sort_keys=True).encode()).hexdigest()
 
 
-def _check_instances(preset, instances, frames, weathers) -> ScenarioSpace | None:
+def _check_instances(preset, instances, frames, weathers, val_share: float | None = None) -> ScenarioSpace | None:
     """The instance mode's space (None: the study's protocol or training scenes); ValueError naming a bad input."""
     if not isinstance(instances, (int, np.integer)) or isinstance(instances, bool) or instances < 1:
         raise ValueError(f"instances must be an integer >= 1, got {instances!r}")
@@ -79,7 +79,10 @@ def _check_instances(preset, instances, frames, weathers) -> ScenarioSpace | Non
                          "its own frames")
     if preset == "sweep" and weathers is not None:
         raise ValueError("weathers cannot be set with the sweep preset: it draws its own weather per instance")
+    if val_share is not None and not (isinstance(val_share, (int, float)) and 0.0 <= val_share < 1.0):
+        raise ValueError(f"val_share must be a number in [0, 1), got {val_share!r}")
     space = ScenarioSpace(int(instances), sweep=preset == "sweep")
+    space = space if val_share is None else replace(space, val_share=float(val_share))
     check_space(space)
     return space
 
@@ -323,7 +326,8 @@ def _worker_init() -> None:
 
 def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathers: list[str] | None = None,
              seed: int = 0, workers: int = 1, lidar_model: str = "physics", progress: bool = True,
-             lidar_spec: LidarSpec | None = None, force: bool = False, instances: int = 1) -> Path:
+             lidar_spec: LidarSpec | None = None, force: bool = False, instances: int = 1,
+             val_share: float | None = None) -> Path:
     """Write the data set to `out` and return `out`. ValueError on invalid arguments.
 
     A partial data set of the same configuration in `out` is resumed, a whole one kept; anything
@@ -337,10 +341,13 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     `instances`: 1 with preset "sotif" is the study's protocol (one scripted run per weather, every 5th
     step). More, or preset "sweep", is instance mode (simulator.space): N instances per weather (sweep: N
     in all, weather drawn per instance), each recorded around its decision window; `frames` is then unset.
+    `val_share` (instance mode): the share of each weather's instances in the val split (default
+    ScenarioSpace.val_share; 0: every instance is test, as `run` makes them: its own val set picks the
+    operating thresholds).
     """
     asked_weathers = weathers
     weathers = _check_args(preset, frames, weathers, workers, lidar_model)
-    space = _check_instances(preset, instances, frames, asked_weathers)
+    space = _check_instances(preset, instances, frames, asked_weathers, val_share)
     if space is not None:
         frames = 0  # each instance records its own frames
     elif frames is None:

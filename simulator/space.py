@@ -137,8 +137,8 @@ def instances(space: ScenarioSpace, seed: int) -> tuple[Instance, ...]:
 
 
 def val_instances(n: int, share: float) -> set[int]:
-    """Instances of the val split: round(share * n) (at least 1 when n >= 2), spread over 1..n-1."""
-    if n < 2:
+    """Instances of the val split: round(share * n) (at least 1 when n >= 2 and share > 0), spread over 1..n-1."""
+    if n < 2 or share <= 0:
         return set()
     k = max(1, int(round(share * n)))
     return set(np.unique(np.linspace(1, n - 1, k).round().astype(int)).tolist())
