@@ -206,7 +206,7 @@ def cmd_run(a) -> int:
         models = resolve_names(models, MODEL_NAMES, "--models", "model")
     out = run(profile=a.profile, models=models, out=Path(a.out) if a.out else None,
               progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, seeds=a.seeds, lidar_model=a.lidar_model,
-              warm_start=a.warm_start)
+              warm_start=a.warm_start, instances=a.instances, sweep_instances=a.sweep_instances)
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -343,6 +343,13 @@ def _add_run(sub, quiet) -> None:
                    help="start PV-RCNN and Part-A2 from the run's SECOND, MVX-Net from its DV-SECOND "
                         "(those train first, and are trained too when --models leaves them out; a changed "
                         "sibling retrains them); on in the quick and default profiles, off in full")
+    s.add_argument("--instances", type=_positive_int,
+                   help="scenario instances per weather preset in the SOTIF set (default: the profile's, 2 in "
+                        "default; 1 = the study's one scripted drive per preset); more give a finer SOTIF map and "
+                        "narrower intervals for prediction time, not training time")
+    s.add_argument("--sweep-instances", type=_positive_int,
+                   help="instances of the weather sweep set over rain rate, fog visibility and road water "
+                        "(default: the profile's, 12 in default)")
     s.set_defaults(func=cmd_run)
 
 

@@ -455,16 +455,27 @@ def _refuse_foreign_folder(run_dir: Path) -> None:
 
 def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
         config: RunConfig | None = None, jobs: int | None = None, seeds: int | None = None,
-        lidar_model: str | None = None, warm_start: bool | None = None) -> Path:
+        lidar_model: str | None = None, warm_start: bool | None = None, instances: int | None = None,
+        sweep_instances: int | None = None) -> Path:
     """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory.
 
     ``config`` replaces the profile's RunConfig (tests use a smaller one); ``jobs`` its number of
     models run at once (not part of any stage key: changing it redoes nothing); ``seeds`` its
     number of training draws per model; ``lidar_model`` "carla" simulates every data set with
     CARLA's weather-blind LiDAR (the paper's protocol); ``warm_start`` starts PV-RCNN and Part-A2
-    from the run's SECOND and MVX-Net from its DV-SECOND (``WARM_FROM``), which then train first."""
+    from the run's SECOND and MVX-Net from its DV-SECOND (``WARM_FROM``), which then train first;
+    ``instances`` the SOTIF set's scenario instances per weather (1: the study's set) and
+    ``sweep_instances`` the sweep set's (a finer map costs prediction time, not training)."""
     from harness.report import render
     cfg, names, run_dir = resolve(profile, models, out, config)
+    for flag, value in (("instances", instances), ("sweep instances", sweep_instances)):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            raise ValueError(f"{flag} must be an integer >= 1, got {value!r}")
+    if instances is not None:  # 1: the study's one scripted instance per weather
+        cfg = replace(cfg, sotif_instances=None if instances == 1 else instances,
+                      sotif_frames=cfg.sotif_frames if instances == 1 else None)
+    if sweep_instances is not None:
+        cfg = replace(cfg, sweep_instances=sweep_instances)
     if jobs is not None:
         cfg = replace(cfg, jobs=jobs)
     if lidar_model is not None:
