@@ -144,7 +144,8 @@ def cmd_export(a) -> int:
     from harness.protect import foreign_onnx, refuse_overwrite
     out = _output_file(a.out)
     refuse_overwrite(out, "an ONNX model", {"--checkpoint": a.checkpoint}, foreign_onnx, a.force)
-    out = export_checkpoint(Path(a.checkpoint), out, expected_model=a.model)
+    say = None if a.quiet else (lambda msg: print(msg, flush=True))
+    out = export_checkpoint(Path(a.checkpoint), out, expected_model=a.model, say=say)
     print(f"ONNX written to {out}")
     return 0
 

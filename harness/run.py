@@ -15,7 +15,6 @@ name ``<name>.seed<d>``. ``results.json`` then lists every draw under ``draws``.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import heapq
 import json
 import os
@@ -33,6 +32,7 @@ from harness import valset
 from harness.jobs import interrupted, job_init
 from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
 from harness.stages import Stages, file_digest
+from models.graph_cache import graph_code  # the export stage's key: a changed network exports again
 
 RUN_SCHEMA = "sotif-bench/run/1"
 GROUP_COLUMNS = ("weather", "time_of_day", "precipitation_class")
@@ -181,20 +181,11 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train
                                                         progress=stages.bars, on_epoch=stages.epoch_line(tag)))},
                        outputs=[ckpt])
     onnx_path = run_dir / "models" / f"{tag}.onnx"
+    say = (lambda msg: print(stages.prefix + msg, flush=True)) if stages.progress else None
     stages.run(f"export_{tag}", {"checkpoint": file_digest(ckpt), "graph_code": graph_code()},
-               lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=name))}, outputs=[onnx_path])
+               lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=name, say=say))},
+               outputs=[onnx_path])
     return tinfo
-
-
-def graph_code() -> str:
-    """A digest of the ``models`` package's sources. A checkpoint's ONNX graph is a function of the
-    checkpoint and this code, so a changed network or exporter exports again; the export is
-    byte-reproducible, so an unchanged graph leaves the predictions after it in place."""
-    import models
-    digest = hashlib.sha256()
-    for path in sorted(Path(models.__file__).parent.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
-    return digest.hexdigest()[:16]
 
 
 def _checkpoint_meta(ckpt: Path) -> dict:

@@ -1,7 +1,9 @@
 """ONNX export following the ONNX contract (docs/models.md).
 
 ``export_onnx(model, path, metadata) -> dict`` exports one frame's forward with the dynamo
-exporter (opset 18, dynamic number of points), checks the file with ``onnx.checker``, drops the
+exporter (opset 18, dynamic number of points): it traces the network (or takes the traced graph
+from ``models.graph_cache``, which makes a new checkpoint's export take seconds), runs the
+exporter's optimiser, checks the file with ``onnx.checker``, drops the
 exporter's stack-trace metadata (so that the bytes depend on the weights only), writes the
 ``sotif.*`` metadata_props and the op histogram (JSON under ``sotif.op_histogram``) and writes
 the file atomically; it returns the op histogram. Camera models (``uses_camera``) take
@@ -16,7 +18,7 @@ import collections
 import contextlib
 import json
 import logging
-import tempfile
+import time
 import warnings
 from pathlib import Path
 
@@ -25,6 +27,7 @@ import onnx
 import torch
 
 from harness.kitti import atomic_write_bytes
+from models import graph_cache
 from models.base import Detector
 
 OPSET = 18
@@ -126,23 +129,74 @@ def _quiet_exporter():
             lg.setLevel(level)
 
 
-def export_onnx(model: Detector, path, metadata: dict[str, str]) -> dict[str, int]:
-    """Export ``model`` to ONE self-contained ONNX file; returns the op histogram."""
-    path = Path(path)
-    model = model.eval().cpu()
-    inputs = example_inputs(model)
-    names = list(model.input_names)
+class _Clock:
+    """The export's stage lines with the seconds since it began (``say`` None: silent)."""
+
+    def __init__(self, architecture: str, say):
+        self.name, self.say, self.t0 = architecture, say, time.perf_counter()
+
+    def seconds(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def __call__(self, stage: str) -> None:
+        if self.say is not None:
+            self.say(f"export {self.name}: {stage} ({self.seconds():.0f} s)")
+
+
+def _trace(model: Detector, inputs: tuple[torch.Tensor, ...]) -> onnx.ModelProto:
+    """The traced, not yet optimised graph with the model's weights (the slow part of an export)."""
+    import onnx_ir as ir
+
     dynamic = [{0: torch.export.Dim("num_points", min=0)}] + [None] * (len(inputs) - 1)
-    with tempfile.TemporaryDirectory() as tmp, _quiet_exporter():
+    with _quiet_exporter():
         try:
-            program = torch.onnx.export(model, inputs, dynamo=True, input_names=names,
-                                        output_names=list(model.output_names),
-                                        dynamic_shapes=tuple(dynamic), opset_version=OPSET,
-                                        optimize=True, verbose=False)
-            program.save(str(Path(tmp) / "model.onnx"))
+            program = torch.onnx.export(model, inputs, dynamo=True, input_names=list(model.input_names),
+                                        output_names=list(model.output_names), dynamic_shapes=tuple(dynamic),
+                                        opset_version=OPSET, optimize=False, verbose=False)
         except Exception as exc:
             raise ExportError(f"{model.architecture}: ONNX export failed: {exc}") from exc
-        proto = onnx.load(str(Path(tmp) / "model.onnx"))
+    return ir.serde.serialize_model(program.model)
+
+
+def _optimise(traced: onnx.ModelProto, architecture: str) -> onnx.ModelProto:
+    """The exporter's optimiser (constant folding, which folds weights too) on a traced graph, read
+    back from its proto whether it was traced now or came from the cache, so both give the same bytes."""
+    import onnx_ir as ir
+
+    program = torch.onnx.ONNXProgram(ir.serde.deserialize_model(traced), None)
+    with _quiet_exporter():
+        try:
+            program.optimize()
+        except Exception as exc:
+            raise ExportError(f"{architecture}: ONNX optimisation failed: {exc}") from exc
+    return ir.serde.serialize_model(program.model)
+
+
+def _traced_graph(model: Detector, clock: _Clock) -> onnx.ModelProto:
+    """The traced graph from the graph cache (models.graph_cache), or traced now and cached."""
+    key = graph_cache.cache_key(model, OPSET)
+    cached = graph_cache.load(key, model)
+    if cached is not None:
+        clock("traced graph from the cache")
+        return cached
+    inputs = example_inputs(model)  # checks a camera model's image size before the slow part
+    clock("tracing")
+    traced = _trace(model, inputs)
+    graph_cache.store(key, traced, model)
+    return traced
+
+
+def export_onnx(model: Detector, path, metadata: dict[str, str], say=None) -> dict[str, int]:
+    """Export ``model`` to ONE self-contained ONNX file; returns the op histogram.
+
+    ``say``: called with a line at each stage (tracing or cache, optimising, checking, writing)."""
+    path = Path(path)
+    model = model.eval().cpu()
+    clock = _Clock(model.architecture, say)
+    traced = _traced_graph(model, clock)
+    clock("optimising")
+    proto = _optimise(traced, model.architecture)
+    clock("checking")
     onnx.checker.check_model(proto, full_check=True)
     strip_trace_metadata(proto)
     hist = op_histogram(proto)
@@ -151,14 +205,18 @@ def export_onnx(model: Detector, path, metadata: dict[str, str]) -> dict[str, in
     del proto.metadata_props[:]
     for key, value in meta.items():
         proto.metadata_props.add(key=key, value=value)
+    clock("writing")
     atomic_write_bytes(path, proto.SerializeToString())  # what onnx.save writes, via temp file + rename
+    if say is not None:
+        say(f"export {model.architecture}: written in {clock.seconds():.0f} s")
     return hist
 
 
-def export_checkpoint(ckpt, out, expected_model: str | None = None) -> Path:
+def export_checkpoint(ckpt, out, expected_model: str | None = None, say=None) -> Path:
     """Export a training checkpoint to ``out`` (.onnx) with its profile and hashes.
 
-    ``expected_model``: refuse (ValueError) a checkpoint of another model."""
+    ``expected_model``: refuse (ValueError) a checkpoint of another model; ``say``: as for
+    ``export_onnx``."""
     from models.zoo import load_checkpoint
 
     model, meta = load_checkpoint(ckpt)
@@ -167,7 +225,7 @@ def export_checkpoint(ckpt, out, expected_model: str | None = None) -> Path:
     export_onnx(model, out, {"sotif.profile": meta.get("profile", ""),
                              "sotif.data_hash": meta.get("data_hash", ""),
                              "sotif.config_hash": meta.get("config_hash", ""),
-                             "sotif.epoch": str(meta.get("epoch", ""))})
+                             "sotif.epoch": str(meta.get("epoch", ""))}, say=say)
     return Path(out)
 
 

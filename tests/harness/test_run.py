@@ -449,7 +449,7 @@ def test_a_changed_graph_code_exports_again_and_trains_nothing(tmp_path, monkeyp
         (out / "checkpoint.pt").write_bytes(b"weights")
         return out / "checkpoint.pt"
 
-    def export(ckpt, out, expected_model=None):
+    def export(ckpt, out, expected_model=None, say=None):
         calls.append("export")
         out.write_bytes(b"graph")
         return out

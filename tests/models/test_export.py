@@ -1,11 +1,15 @@
+import dataclasses
+import hashlib
 import json
 import os
+import re
 
 import numpy as np
 import onnx
 import pytest
 import torch
 
+from models import graph_cache
 from models.base import Detector
 from models.export import ExportError, export_onnx, op_histogram, run_onnx
 
@@ -111,3 +115,132 @@ def test_reset_norm_statistics_averages_the_passes_that_follow():
         bn(x)
     np.testing.assert_allclose(bn.running_mean.numpy(), np.mean([x.mean(0).numpy() for x in batches], 0), rtol=1e-5)
     assert bn.momentum is None and int(bn.num_batches_tracked) == 2
+
+
+@dataclasses.dataclass(frozen=True)
+class _CachedConfig:
+    pc_range: tuple = (0.0, -10.0, -3.0, 20.0, 10.0, 1.0)
+    width: int = 8
+
+
+class _Cached(_Toy):
+    """A contract model with a dataclass config (so its traced graph is cached) whose weights the
+    optimiser folds: a gain's exponential and a Linear layer's transposed matrix."""
+
+    def __init__(self, cfg: _CachedConfig = _CachedConfig(), seed: int = 0):
+        super().__init__()
+        self.cfg = cfg
+        gen = torch.Generator().manual_seed(seed)
+        self.hidden = torch.nn.Linear(4, cfg.width)
+        self.gain = torch.nn.Parameter(torch.zeros(cfg.width))
+        self.score = torch.nn.Linear(cfg.width, 1)
+        with torch.no_grad():
+            for tensor in self.parameters():
+                tensor.copy_(torch.rand(tensor.shape, generator=gen) - 0.5)
+        self.eval()
+
+    def forward(self, points):
+        keep = (points[:, 0] >= 0) & (points[:, 0] < 20)
+        pts = points[keep]  # (M, 4)
+        boxes = torch.cat([pts[:, :3], torch.ones_like(pts[:, :3]), pts[:, 3:4]], dim=1)  # (M, 7)
+        hidden = torch.relu(self.hidden(pts) * torch.exp(self.gain))  # (M, width)
+        return boxes, torch.sigmoid(self.score(hidden))[:, 0]
+
+
+def _export_lines(model, path, cache) -> list[str]:
+    """Export with ``SOTIF_BENCH_GRAPH_CACHE=cache``; the stage lines it printed."""
+    lines = []
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv(graph_cache.ENV, str(cache))
+        export_onnx(model, path, {"sotif.profile": "tiny"}, say=lines.append)
+    return lines
+
+
+def test_a_cached_graph_exports_a_new_checkpoint_as_a_fresh_export_does(tmp_path):
+    cache = tmp_path / "graphs"
+    first = _export_lines(_Cached(seed=1), tmp_path / "a.onnx", cache)
+    assert [line.split(" (")[0] for line in first[:-1]] == [
+        "export toy: tracing", "export toy: optimising", "export toy: checking", "export toy: writing"]
+    assert re.fullmatch(r"export toy: written in \d+ s", first[-1])
+    assert len(list(cache.glob("*.graph"))) == 1
+    warm = _export_lines(_Cached(seed=2), tmp_path / "b.onnx", cache)
+    assert warm[0].startswith("export toy: traced graph from the cache")
+    _export_lines(_Cached(seed=2), tmp_path / "fresh.onnx", "off")
+    assert (tmp_path / "b.onnx").read_bytes() == (tmp_path / "fresh.onnx").read_bytes()
+    assert (tmp_path / "b.onnx").read_bytes() != (tmp_path / "a.onnx").read_bytes()
+    points = np.random.default_rng(0).uniform([0, -10, -3, 0], [20, 10, 1, 1], (50, 4)).astype(np.float32)
+    with torch.no_grad():
+        expected = _Cached(seed=2)(torch.from_numpy(points))[1].numpy()
+    np.testing.assert_allclose(run_onnx(tmp_path / "b.onnx", points)[1], expected, rtol=1e-5)
+    _export_lines(_Cached(_CachedConfig(width=4)), tmp_path / "c.onnx", cache)  # another config: its own entry
+    assert len(list(cache.glob("*.graph"))) == 2
+
+
+@pytest.mark.parametrize("damage", ["truncate", "garbage", "other_shapes"])
+def test_a_damaged_or_foreign_cache_entry_is_ignored_and_rebuilt(tmp_path, damage):
+    cache = tmp_path / "graphs"
+    _export_lines(_Cached(seed=1), tmp_path / "a.onnx", cache)
+    [entry] = cache.glob("*.graph")
+    good = entry.read_bytes()
+    if damage == "truncate":
+        entry.write_bytes(good[: len(good) // 2])
+    elif damage == "garbage":
+        entry.write_bytes(b"0" * 64 + b"\n" + b"\x08\x99")
+    else:  # a well-formed entry whose weights have other shapes than the model's (same key)
+        other = onnx.ModelProto.FromString(good.partition(b"\n")[2])
+        weight = next(i for i in other.graph.initializer if i.name in graph_cache.weights(_Cached()))
+        weight.dims[0] += 1
+        payload = other.SerializeToString()
+        entry.write_bytes(hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload)
+    lines = _export_lines(_Cached(seed=2), tmp_path / "b.onnx", cache)
+    assert lines[0].startswith("export toy: tracing")
+    assert entry.read_bytes() == good  # rebuilt
+    _export_lines(_Cached(seed=2), tmp_path / "fresh.onnx", "off")
+    assert (tmp_path / "b.onnx").read_bytes() == (tmp_path / "fresh.onnx").read_bytes()
+
+
+def test_weights_that_do_not_map_one_to_one_are_never_cached(tmp_path, monkeypatch):
+    """Where filling the model's own weights into the emptied graph does not give back the traced
+    graph byte for byte, no entry is written and every export traces."""
+    monkeypatch.setattr(graph_cache, "_raw", lambda tensor: b"")
+    cache = tmp_path / "graphs"
+    _export_lines(_Cached(seed=1), tmp_path / "a.onnx", cache)
+    assert not list(cache.glob("*.graph"))
+    assert _export_lines(_Cached(seed=1), tmp_path / "b.onnx", cache)[0].startswith("export toy: tracing")
+
+
+def test_cache_folder_and_key(tmp_path, monkeypatch):
+    monkeypatch.delenv(graph_cache.ENV, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert graph_cache.cache_dir() == tmp_path / "sotif-bench" / "graphs"
+    monkeypatch.setenv(graph_cache.ENV, "off")
+    assert graph_cache.cache_dir() is None
+    monkeypatch.setenv(graph_cache.ENV, str(tmp_path / "g"))
+    assert graph_cache.cache_dir() == tmp_path / "g"
+    key = graph_cache.cache_key(_Cached(), 18)
+    assert key == graph_cache.cache_key(_Cached(seed=3), 18)  # weights are not in the key
+    assert key != graph_cache.cache_key(_Cached(_CachedConfig(width=4)), 18)
+    assert key != graph_cache.cache_key(_Cached(), 19)
+    assert graph_cache.cache_key(_Toy(), 18) is None  # a config that is not a dataclass: not cached
+
+
+@pytest.mark.parametrize("name", ["pointpillars", "pv_rcnn", "mvx_net"])
+def test_cached_export_of_a_model_equals_its_fresh_export(tmp_path, name):
+    """Tiny profiles: the graph cached from one model's export, filled with another model's weights
+    (BatchNorm statistics moved as by training), gives the bytes of that model's fresh export."""
+    from models import zoo
+
+    def model(seed):
+        torch.manual_seed(seed)
+        net = zoo.build(name, "tiny").eval()
+        with torch.no_grad():
+            for buf in net.buffers():
+                if buf.is_floating_point():
+                    buf.uniform_(0.5, 1.5)
+        return net
+
+    cache = tmp_path / "graphs"
+    _export_lines(model(0), tmp_path / "a.onnx", cache)
+    assert "from the cache" in _export_lines(model(1), tmp_path / "warm.onnx", cache)[0]
+    _export_lines(model(1), tmp_path / "fresh.onnx", "off")
+    assert (tmp_path / "warm.onnx").read_bytes() == (tmp_path / "fresh.onnx").read_bytes()
