@@ -10,6 +10,7 @@ before anything is written.
 from __future__ import annotations
 
 import base64
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +19,7 @@ import pandas as pd
 from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
-from harness import figures, sotif, tables
+from harness import figures, notes, provenance, rain, rain_figures, sotif, tables
 from harness.kitti import atomic_write_bytes, atomic_write_text
 
 TEMPLATES = Path(__file__).parent / "templates"
@@ -28,6 +29,8 @@ SMOKE_BANNER = ("Smoke run: numbers meaningless.",  # (heading, text) on a quick
                 "runs end to end; `make run` (the default profile) gives results.")
 
 HOW_TO_READ = {  # one sentence opening each section: how to read it
+    "rain": "Compare each model's rain cells with its dry cell: a loss counts only where the intervals do not "
+            "overlap. The IoU 0.5 rows are the dry / wet / rain and soft / mid / hard figures the summary quotes.",
     "models": "Each row is one detector: compare the SOTIF columns (higher AP and more presets passed are "
               "better, lower latency is cheaper); the val column shows how well each one trained.",
     "main": "Read a row to compare the models in one weather and a column to see how one model's AP falls "
@@ -38,7 +41,7 @@ HOW_TO_READ = {  # one sentence opening each section: how to read it
     "sotif": "Look for FAIL cells: each marks a weather in which the model would have found the slow car too "
              "late, or never, for the ego to brake.",
     "robustness": "1.0 means as good as in clear weather and less means worse; mRR condenses a model's rain and wet"
-                  " presets into one such number.",
+                  " presets into one such number, and only an interval wholly below 1 is a measurable loss.",
     "detail": "Check the cars columns before trusting a small AP: an AP over few cars is capped and noisy.",
     "runtime": "Fewer milliseconds is faster; an ORT speed-up above 1 means onnxruntime beats torch eager, and "
                "the agreement columns should read 1.00 (all frames the same boxes) with tiny score differences.",
@@ -74,9 +77,17 @@ COLUMN_NAMES = {
 }
 
 
+MODEL_LABELS = {"pointpillars": "PointPillars", "second": "SECOND", "dv_second": "DV-SECOND", "parta2": "Part-A2",
+                "pv_rcnn": "PV-RCNN", "point_rcnn": "PointRCNN", "mvx_net": "MVX-Net"}
+
+
 def readable(df: pd.DataFrame) -> pd.DataFrame:
-    """``df`` with the column headers a reader sees (model names and other columns as they are)."""
-    return df.rename(columns=COLUMN_NAMES)
+    """``df`` as a reader sees it: headers in words (``COLUMN_NAMES``, the models' published names, any other
+    underscore as a space) and the models' published names in a ``model`` column."""
+    out = df.rename(columns=lambda c: str(COLUMN_NAMES.get(c, MODEL_LABELS.get(c, c))).replace("_", " "))
+    if "model" in out.columns:
+        out["model"] = out["model"].map(lambda m: MODEL_LABELS.get(m, m) if isinstance(m, str) else m)
+    return out
 
 
 @dataclass
@@ -90,6 +101,8 @@ class Section:
     figures: list  # figure names (keys of the rendered figure dict)
     details: bool = False  # long tables folded away in the HTML
     figures_first: bool = False
+    notes: tuple = ()  # short statements of what the numbers do not say, printed below the intro
+    lead: bool = False  # shown first, above the models at a glance
 
     @property
     def read(self) -> str:
@@ -99,11 +112,7 @@ class Section:
 # ----------------------------------------------------------------------------- figures
 def _figure_specs(run: tables.Run, t: dict) -> dict:
     """``{name: (caption, Figure)}`` for every figure the run has the data for."""
-    specs = {}
-    matrix = tables.headline_matrix(t["weather_detail"])
-    if not matrix.empty:
-        specs["heatmap"] = ("Headline AP40 3D @0.7 (all distances, no 2D-height filter) per weather preset and model.",
-                            figures.heatmap_figure(matrix, "Headline AP per weather preset"))
+    specs = _rain_figures(run, t)
     overall = pd.DataFrame({"model": list(run.results),
                             "ap": [r["headline"]["3d"]["0.7"] for r in run.results.values()]})
     if not t["runtime"].empty:
@@ -131,6 +140,32 @@ def _figure_specs(run: tables.Run, t: dict) -> dict:
             specs["bev"] = ("Bird's-eye view of one test frame per weather (the first after the lane change): points, "
                             "ground truth (green), each model's detections above its operating threshold (dashed).",
                             figures.bev_figure(frames, list(thr)))
+    return specs
+
+
+def _rain_figures(run: tables.Run, t: dict) -> dict:
+    """The rain story's figure and the two weather heat maps (presets by time of day, then rain rate)."""
+    specs = {}
+    if not t["rain"].empty:
+        specs["rain"] = ("Headline AP40 3D per model in dry, wet and rain (all times of day) and the noon rain grades "
+                         "(soft 4.5, mid 18, hard 50 mm/h), at IoU 0.5 (top) and 0.7 (bottom); bars: 95% bootstrap "
+                         "interval over frames.", rain_figures.rain_figure(t["rain"], MODEL_LABELS))
+    matrix = tables.headline_matrix(t["weather_detail"])
+    if matrix.empty:
+        return specs
+    order = rain.preset_order(matrix.index, run.meta)
+    matrix = matrix.reindex(order).rename(columns=lambda m: MODEL_LABELS.get(m, m))
+    groups = rain.time_groups(order, run.meta)
+    facts = rain.preset_facts(run.meta)
+    rates = facts["rain_rate_mmh"].to_dict() if not facts.empty else {}
+    specs["heatmap"] = ("Headline AP40 3D @0.7 (all distances, no 2D-height filter) per weather preset and model, "
+                        "presets grouped by time of day and ordered by rain rate.",
+                        rain_figures.ordered_heatmap(matrix, groups, rates, "Headline AP per weather preset"))
+    delta = rain.clear_delta(matrix, run.meta)
+    if delta.notna().any().any():
+        specs["heatmap_delta"] = ("The same AP minus that of the same time of day's clear preset (ClearNoon, "
+                                  "ClearSunset, ClearNight), in points: red is a loss, blue a gain.",
+                                  rain_figures.delta_heatmap(delta, groups, rates, "AP relative to clear weather"))
     return specs
 
 
@@ -165,12 +200,17 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                      "draws, next to the width of the 95% bootstrap interval over frames of draw 0's headline AP "
                      "in its narrowest and widest weather group. The other tables show draw 0.",
                      [("", t["draws"], 1)], [])] if "draws" in t else []
+    order = rain.preset_order(t["weather_headline"].get("weather", []), run.meta)
+    by_weather = t["weather_headline"].set_index("weather").reindex(order).reset_index() if order else t["weather_headline"]
+    relative = t["relative_ap"].set_index("weather").reindex(order).reset_index() if order else t["relative_ap"]
     return [
+        _rain_section(t["rain"]),
         Section("main", "Headline AP per weather preset",
                 "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% bootstrap intervals "
                 "over frames (the SOTIF targets are far and small, so KITTI's moderate/hard filters would ignore "
-                "most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"],
-                figures_first=True),
+                "most of them); presets grouped by time of day, by rain rate within.",
+                [("", _ci_display(by_weather, models), 1)], ["heatmap", "heatmap_delta"], figures_first=True,
+                notes=tuple(n for n in (notes.lidar_twins_note(run.meta), notes.fog_note(run.meta)) if n)),
         *draws,
         Section("paper", "KITTI protocol (the paper's tables)",
                 "AP11 and AP40 at IoU 0.7 for 2D bbox, BEV, 3D and AOS with KITTI's easy/moderate/hard filters; "
@@ -182,11 +222,15 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "the gap from the ego's front bumper to its rear face left at that moment if the ego had kept its "
                 "closing speed dv from the lane change (the simulated ego brakes on ground truth), vs the stopping "
                 f"distance dv*{c['t_react_s']:g} s + dv^2/(2*{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m, "
-                "and the time after the lane change.", [("", t["sotif_matrix"], 1)], []),
+                "and the time after the lane change.", [("", t["sotif_matrix"], 1)], [],
+                notes=tuple(n for n in (notes.sotif_leniency(t["sotif"]),) if n)),
         Section("robustness", "Robustness",
                 "AP relative to each model's clean value (mean of ClearNoon and ClearSunset); mRR = mean relative "
-                "AP over the rain and wet presets (Robo3D); headline AP by time of day and precipitation class.",
-                [("Summary", t["robustness"], 2), ("AP relative to clean, per weather", t["relative_ap"], 2),
+                "AP over the rain and wet presets (Robo3D), with a 95% interval from the presets' bootstrap intervals "
+                "(delta method); the worst preset is the rain or wet preset of lowest relative AP; headline AP by "
+                "time of day and precipitation class.",
+                [("Summary", rain.robustness_display(t["robustness"]), 2),
+                 ("AP relative to clean, per weather", relative, 2),
                  ("By time of day (AP40 3D @0.7)", _group_matrix(t["time_of_day"], "time_of_day"), 1),
                  ("By precipitation class (AP40 3D @0.7)", _group_matrix(t["precipitation_class"],
                                                                          "precipitation_class"), 1)], []),
@@ -216,6 +260,18 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
     ]
 
 
+def _rain_section(long: pd.DataFrame) -> Section:
+    """The report's lead: per model, dry / wet / rain and the rain grades at both IoUs, with their intervals."""
+    counts = long.drop_duplicates("condition") if not long.empty else long
+    behind = ", ".join(f"{r.condition} {r.n_frames} frames / {r.n_car} cars" for r in counts.itertuples())
+    return Section("rain", "Which detectors hold up in rain",
+                   "Headline AP40 3D (all distances, no 2D-height filter) with its 95% bootstrap interval over frames. "
+                   "Dry / wet / rain: every preset of that precipitation class, all times of day; soft / mid / hard "
+                   "rain: the noon rain presets (SoftRainNoon 4.5, MidRainyNoon 18, HardRainNoon 50 mm/h). Behind each "
+                   f"cell: {behind or 'no groups'}.", [("", rain.rain_display(long), 1)], ["rain"],
+                   figures_first=True, lead=True)
+
+
 # ----------------------------------------------------------------------------- rendering
 def _overview(run: tables.Run) -> dict:
     s, data = run.summary, run.summary.get("data", {})
@@ -223,9 +279,17 @@ def _overview(run: tables.Run) -> dict:
                "uses_camera": bool(m.get("uses_camera"))} for n, m in s["models"].items()]
     frames = {k: data.get(f"n_{k}_frames") for k in ("test", "val", "train")}
     total = sum(v for v in (s.get("stage_seconds") or {}).values() if isinstance(v, (int, float)))
+    vals = notes.val_sets(run.run_dir, s)
     return {"profile": s.get("profile", "?"), "smoke": SMOKE_BANNER if s.get("profile") == "quick" else None,
             "created": s.get("created", "?"), "models": models, "frames": frames, "total_seconds": total or None,
-            "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"]}
+            "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"], "vals": vals,
+            "val_note": notes.val_note(vals), "code": provenance.compare(s.get("code")), "glossary": _glossary(run.run_dir)}
+
+
+def _glossary(run_dir: Path) -> str | None:
+    """The relative link from the run folder to docs/glossary.md of this checkout, None when there is none."""
+    doc = provenance.ROOT / "docs" / "glossary.md"
+    return Path(os.path.relpath(doc, run_dir.resolve())).as_posix() if doc.is_file() else None
 
 
 def _html_table(df: pd.DataFrame, decimals: int) -> Markup:

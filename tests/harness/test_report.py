@@ -14,6 +14,9 @@ from harness.kitti import KittiError, Labels
 from harness.sotif import sotif_view
 
 WEATHERS = {"ClearNoon": ("Noon", "dry"), "ClearSunset": ("Sunset", "dry"), "HardRainNight": ("Night", "rain")}
+FACTS = {"ClearNoon": (5.0, 0.0, 0.0, 0.0, 0.0), "ClearSunset": (5.0, 0.0, 0.0, 0.0, 0.0),  # cloudiness, precipitation,
+         "HardRainNight": (100.0, 100.0, 90.0, 100.0, 50.0)}  # deposits, wetness, rain mm/h (simulator.weather)
+FACT_COLUMNS = ("cloudiness", "precipitation", "precipitation_deposits", "wetness", "rain_rate_mmh")
 
 
 def _frame(rng, data, fid, k):
@@ -51,7 +54,7 @@ def make_run(root, models=(("alpha", 0.1, False), ("beta", 0.6, True)), sotif_co
             rows.append({"frame_id": fid, "split": "val" if k == 0 else "test", "weather": weather, "time_of_day": tod,
                          "precipitation_class": precip, "scenario_time_s": 0.5 * k, "lane_change_time_s": 0.5,
                          "slow_car_label_index": 0, "ego_speed_mps": 25.0, "slow_car_speed_mps": 16.7,
-                         "n_points": 450})
+                         "n_points": 450, **dict(zip(FACT_COLUMNS, FACTS[weather]))})
     meta = pd.DataFrame(rows)
     if not sotif_columns:
         meta = meta[["frame_id", "split", "weather", "time_of_day", "precipitation_class", "n_points"]]
@@ -95,9 +98,11 @@ def test_render_writes_a_self_contained_report(rendered):
     assert not re.search(r"https?://|<script|<link", html)
     srcs = re.findall(r'src="([^"]*)"', html)
     assert srcs and all(s.startswith("data:image/png;base64,") for s in srcs)
-    assert len(srcs) == 6  # heatmap, AP/latency, PR curves, AP/distance, data per weather, BEV
-    # the reader sees what was run, then the heatmap, then the main table, then the rest
-    pos = [html.index(s) for s in ("profile</b> quick", "alpha, beta", "Models at a glance", 'alt="heatmap"', "HardRainNight", 'id="paper"')]
+    assert len(srcs) == 8  # rain, heatmap, relative to clear, AP/latency, PR curves, AP/distance, data, BEV
+    # the reader sees what was run, then the rain story, the models, the heatmaps, the main table, then the rest
+    pos = [html.index(s) for s in ("profile</b> quick", "alpha, beta", 'id="rain"', 'alt="rain"',
+                                   "Models at a glance", 'alt="heatmap"', 'alt="heatmap_delta"', "HardRainNight",
+                                   'id="paper"')]
     assert pos == sorted(pos)
     assert 'id="sotif"' in html and "Recall of two-stage models" in html
     assert re.search(r'<td class="(pass|fail)">(pass|FAIL) ', html)
