@@ -5,6 +5,7 @@ bytecode caches, by relative path and bytes, so it is the same for an installed 
 from __future__ import annotations
 
 import hashlib
+import json
 import subprocess
 from pathlib import Path
 
@@ -43,13 +44,24 @@ def record(root: Path = ROOT) -> dict:
 
 
 def compare(recorded: dict | None, current: str | None = None) -> str:
-    """A sentence saying whether this installation's sources are the ones ``recorded`` (``record()``'s dict)."""
+    """A sentence saying whether the installed sources are the ones ``recorded`` (``record()``'s dict) when this
+    runs (the report says it at rendering; ``sotif-bench report`` prints it)."""
     if not isinstance(recorded, dict) or not recorded.get("sources_sha256"):
-        return "The run does not record the code that made it (made before the digest was recorded)."
+        return "the run does not record the code that made it (made before the digest was recorded)."
     commit = recorded.get("commit")
     made = f"commit {commit[:10]}" if commit else "an installation outside git"
     digest = recorded["sources_sha256"]
-    if digest == (current or source_digest()):
-        return f"Made by {made} (sources SHA-256 {digest[:12]}); this installation's sources match it."
-    return (f"Made by {made} (sources SHA-256 {digest[:12]}); this installation's sources differ, so a new run may "
-            "not reproduce these numbers.")
+    same = digest == (current or source_digest())
+    return (f"made by {made}, sources SHA-256 {digest[:16]} (python -m harness.provenance prints this installation's); "
+            + ("the installed sources matched it when this was rendered." if same else
+               "the installed sources differed when this was rendered: a new run may not reproduce these numbers."))
+
+
+def check_run(run_dir) -> str:
+    """``compare`` for a run folder's results.json (already checked by the report)."""
+    summary = json.loads((Path(run_dir) / "results.json").read_text(encoding="utf-8"))
+    return compare(summary.get("code"))
+
+
+if __name__ == "__main__":
+    print(json.dumps(record(), indent=1))

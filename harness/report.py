@@ -115,9 +115,15 @@ def _figure_specs(run: tables.Run, t: dict) -> dict:
     specs = _rain_figures(run, t)
     overall = pd.DataFrame({"model": list(run.results),
                             "ap": [r["headline"]["3d"]["0.7"] for r in run.results.values()]})
+    draws = t.get("draws", pd.DataFrame())
+    if not draws.empty:  # the spread over training draws, drawn as a vertical range
+        overall = overall.merge(draws[["model", "AP3D min", "AP3D max"]].rename(
+            columns={"AP3D min": "ap_lo", "AP3D max": "ap_hi"}), on="model", how="left")
     if not t["runtime"].empty:
         pts = overall.merge(t["runtime"][["model", "ort_p50_ms"]], on="model", how="left")
-        specs["ap_latency"] = ("Overall headline AP against onnxruntime latency per frame (p50, log scale).",
+        pts["model"] = pts["model"].map(lambda m: MODEL_LABELS.get(m, m))
+        specs["ap_latency"] = ("Overall headline AP against onnxruntime latency per frame (p50, log scale); a vertical "
+                               "bar spans the model's training draws when the run has several.",
                                figures.scatter_figure(pts, "ort_p50_ms", "ap", "onnxruntime latency p50 (ms)",
                                                       "AP40 3D @0.7 (%)", "Accuracy vs latency"))
     curves = {n: (r["pr_curve"]["recall"], r["pr_curve"]["precision"]) for n, r in run.results.items() if "pr_curve" in r}
@@ -135,11 +141,12 @@ def _figure_specs(run: tables.Run, t: dict) -> dict:
     data_dir = run.run_dir / "data" / "sotif"
     if run.meta is not None and (data_dir / "ImageSets" / "test.txt").is_file():
         thr = {n: _threshold(m) for n, m in run.summary["models"].items()}
-        frames = figures.bev_frames(run.run_dir, run.meta, thr)
-        if frames:
-            specs["bev"] = ("Bird's-eye view of one test frame per weather (the first after the lane change): points, "
-                            "ground truth (green), each model's detections above its operating threshold (dashed).",
-                            figures.bev_figure(frames, list(thr)))
+        frame = figures.bev_frame(run.run_dir, run.meta, thr)
+        if frame is not None:
+            specs["bev"] = ("Bird's-eye view of one test frame, the first after the lane change in the rainiest preset, "
+                            "one panel per model: points, ground truth (green, the slow car thick), the model's "
+                            "detections above its operating threshold (dashed); metres in the LiDAR frame.",
+                            figures.bev_figure(frame, list(thr), MODEL_LABELS))
     return specs
 
 

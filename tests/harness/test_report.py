@@ -211,3 +211,50 @@ def test_only_a_quick_run_has_the_banner(tmp_path):
     kitti.atomic_write_text(root / "results.json", json.dumps({**doc, "profile": "default"}))
     report.render(root)
     assert "Smoke run" not in (root / "index.html").read_text() and "Smoke run" not in (root / "report.md").read_text()
+
+
+def test_sotif_leniency_states_the_slack_from_the_rows():
+    from harness import notes, tables
+    rows = pd.DataFrame({"weather": ["A", "B", "C"], "model": "m", "detected": [True, True, False],
+                         "distance_m": [52.0, 47.5, None], "distance_at_lane_change_m": [61.0, 46.0, 46.0],
+                         "closing_speed_mps": [8.0, 8.0, 8.0], "stopping_distance_m": [19.0, 19.0, 19.0],
+                         "verdict": ["pass", "pass", "FAIL"]})
+    text = notes.sotif_leniency(rows)
+    slack = (46.0 - 19.0) / 8.0
+    assert "46-61 m ahead" in text and "needs 19 m" in text and f"up to {slack:.1f} s" in text
+    assert "2 of 3 cells pass" in text and "detections came 48-52 m ahead" in text
+    assert notes.sotif_leniency(pd.DataFrame(columns=tables.SOTIF_COLUMNS)) == ""
+
+
+def test_lidar_fog_and_val_notes(tmp_path):
+    from harness import notes
+    meta = pd.DataFrame({"weather": ["ClearNoon", "ClearNight", "HardRainNoon"], "time_of_day": ["Noon", "Night", "Noon"],
+                         "rain_rate_mmh": [0.0, 0.0, 50.0], "precipitation": [0.0, 0.0, 100.0],
+                         "precipitation_deposits": [0.0, 0.0, 90.0], "wetness": [0.0, 0.0, 100.0],
+                         "cloudiness": [5.0, 5.0, 100.0]})
+    text = notes.lidar_twins_note(meta)
+    assert "tells 2 conditions apart among these 3 presets" in text and "ClearNoon = ClearNight" in text
+    assert notes.lidar_twins_note(None) == "" and notes.fog_note(None) == ""
+    assert "No preset of this run has LiDAR fog" in notes.fog_note(meta)
+    assert notes.fog_note(meta.assign(lidar_fog_mor_m=[0.0, 0.0, 200.0])) == "Presets with LiDAR fog: HardRainNoon."
+    kitti.write_image_set(tmp_path / "data" / "train" / "ImageSets" / "val.txt", ["000001", "000002"])
+    vals = notes.val_sets(tmp_path, {"data": {"n_val_frames": 7}})
+    assert vals == {"sotif": 7, "training": 2}
+    assert "on 2 held-out dry frames" in notes.val_note(vals) and "the 7 val frames" in notes.val_note(vals)
+
+
+def test_report_leads_with_the_rain_story_and_says_what_its_numbers_do_not(rendered):
+    run_dir, html = rendered[0], rendered[1].decode("utf-8")
+    md = (run_dir / "report.md").read_text()
+    assert md.index("## Which detectors hold up in rain") < md.index("## Models at a glance")
+    rain = pd.read_csv(run_dir / "tables" / "rain.csv", dtype={"iou": str})
+    res = json.loads((run_dir / "results" / "beta.json").read_text())
+    dry = res["groups_by"]["precipitation_class"]["rows"]["dry"]
+    row = rain[(rain.model == "beta") & (rain.condition == "dry") & (rain.iou == "0.5")].iloc[0]
+    assert row.ap == pytest.approx(dry["headline"]["3d"]["0.5"]) and row.ap_lo == dry["headline_ci95_0.5"]["3d"][0]
+    assert f"| beta | 0.5 | {row.ap:.1f} [{row.ap_lo:.1f}, {row.ap_hi:.1f}] |" in md
+    for text in (html, md):
+        assert "SOTIF val 3 (operating thresholds)" in text and "How lenient this is" in text
+        assert "No preset of this run has LiDAR fog" in text and "tells 2 conditions apart" in text
+        assert "the run does not record the code" in text  # the fake run predates the record
+    assert "worst rain/wet preset" in html and "ClearNoon</td><td>" not in html.split('id="robustness"')[1][:3000]
