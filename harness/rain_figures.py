@@ -22,7 +22,7 @@ def rain_figure(long: pd.DataFrame, labels: dict | None = None) -> Figure:
     (``long``: ``harness.rain.rain_long``); ``labels`` renames models on the axis."""
     models = list(dict.fromkeys(long["model"]))
     conds = [c for c in CONDITIONS if c in set(long["condition"])]
-    fig = Figure(figsize=(7.2, 4.6), layout="constrained")
+    fig = Figure(figsize=(7.0, 3.9), layout="constrained")
     axes = fig.subplots(2, 1, sharex=True)
     width = 0.8 / max(len(conds), 1)
     for ax, iou in zip(axes, IOUS):

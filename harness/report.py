@@ -29,8 +29,8 @@ SMOKE_BANNER = ("Smoke run: numbers meaningless.",  # (heading, text) on a quick
                 "runs end to end; `make run` (the default profile) gives results.")
 
 HOW_TO_READ = {  # one sentence opening each section: how to read it
-    "rain": "Compare each model's rain cells with its dry cell: a loss counts only where the intervals do not "
-            "overlap. The IoU 0.5 rows are the dry / wet / rain and soft / mid / hard figures the summary quotes.",
+    "rain": "Compare a model's rain cells with its dry cell: a loss counts where the intervals do not overlap. "
+            "The IoU 0.5 rows are the figures the summary quotes.",
     "models": "Each row is one detector: compare the SOTIF columns (higher AP and more presets passed are "
               "better, lower latency is cheaper); the val column shows how well each one trained.",
     "main": "Read a row to compare the models in one weather and a column to see how one model's AP falls "
@@ -272,11 +272,10 @@ def _rain_section(long: pd.DataFrame) -> Section:
     counts = long.drop_duplicates("condition") if not long.empty else long
     behind = ", ".join(f"{r.condition} {r.n_frames} frames / {r.n_car} cars" for r in counts.itertuples())
     return Section("rain", "Which detectors hold up in rain",
-                   "Headline AP40 3D (all distances, no 2D-height filter) with its 95% bootstrap interval over frames. "
-                   "Dry / wet / rain: every preset of that precipitation class, all times of day; soft / mid / hard "
-                   "rain: the noon rain presets (SoftRainNoon 4.5, MidRainyNoon 18, HardRainNoon 50 mm/h). Behind each "
-                   f"cell: {behind or 'no groups'}.", [("", rain.rain_display(long), 1)], ["rain"],
-                   figures_first=True, lead=True)
+                   "AP40 3D, all distances, no 2D-height filter, [95% bootstrap interval over frames]. Dry / wet / "
+                   "rain: all presets of that class and time of day; soft / mid / hard rain: the noon rain presets "
+                   f"(4.5, 18, 50 mm/h). Behind each cell: {behind or 'no groups'}.",
+                   [("", rain.rain_display(long), 1)], ["rain"], lead=True)
 
 
 # ----------------------------------------------------------------------------- rendering
