@@ -190,8 +190,7 @@ def bev_figure(frame: BevFrame, models: list[str], labels: dict | None = None, n
     handles = [Line2D([], [], color=GT_COLOUR, lw=1.2, label="ground truth"),
                Line2D([], [], color=GT_COLOUR, lw=2.8, label="slow car (ground truth)"),
                Line2D([], [], color="#333333", ls="--", label="detections above the operating threshold")]
-    fig.legend(handles=handles, loc="outside upper center", ncols=3, fontsize=9)
-    fig.suptitle(frame.title, fontsize=10)
+    fig.legend(handles=handles, loc="outside upper center", ncols=3, fontsize=9, title=frame.title, title_fontsize=10)
     return fig
 
 
