@@ -3,7 +3,6 @@ import re
 
 import numpy as np
 import pandas as pd
-import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from PIL import Image
 
