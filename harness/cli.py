@@ -213,12 +213,14 @@ def cmd_run(a) -> int:
 
 
 def cmd_report(a) -> int:
+    from harness.provenance import check_run
     from harness.report import render
     from harness.sample import check_destination, publish_sample
     if a.sample:
         check_destination(a.run_dir, a.sample)  # before rendering: a refused DIR leaves everything as it was
     out = render(Path(a.run_dir))
     print(f"report: {out}")
+    print(f"code: {check_run(a.run_dir)}")
     if a.sample:
         print(f"sample: {publish_sample(Path(a.run_dir), Path(a.sample))}")
     return 0

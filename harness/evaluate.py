@@ -14,7 +14,7 @@
   given boxes exceeds the threshold (micro-averaged over frames); ``roi`` only when the
   prediction folder has ``rois/``.
 - ``groups`` (with ``--group-by``): ``{"column": C, "rows": {value: {n_frames, n_car, headline,
-  headline_ci95 {3d, bev: [lo, hi]}, ci_method, kitti_moderate {3d, bev} (AP40 @0.7), n_gt_kitti_moderate,
+  headline_ci95 {3d, bev: [lo, hi]} (IoU 0.7), headline_ci95_0.5 {3d: [lo, hi]}, ci_method, kitti_moderate {3d, bev} (AP40 @0.7), n_gt_kitti_moderate,
   distance, n_gt, recall}}}``. A numeric column with more than ``harness.conditions.MAX_LEVELS``
   distinct values (a swept condition) groups by quantile bins named "[lo, hi)". ``ci_method`` says
   how ``headline_ci95`` was made: "bootstrap over instances (N instances, R resamples)" when the
@@ -48,8 +48,9 @@ from harness.kitti import KittiError, Labels, atomic_write_text, read_frames_met
 SCHEMA = "sotif-bench/results/1"
 # Bumped whenever a fix changes any number of the same predictions, so that a run directory
 # evaluated before it evaluates again (2: BEV/3D overlaps turn boxes by -rotation_y, as the reference;
-# 3: n_gt, the boxes each headline / distance / moderate AP counts; 4: n_gt_kitti, pr_curve_raw)
-EVALUATOR_VERSION = 4
+# 3: n_gt, the boxes each headline / distance / moderate AP counts; 4: n_gt_kitti, pr_curve_raw;
+# 5: the groups' interval at IoU 0.5)
+EVALUATOR_VERSION = 5
 ALL_DISTANCES = Filter("all")
 DISTANCE_BINS = (Filter("0-30", min_distance=0, max_distance=30), Filter("30-50", min_distance=30, max_distance=50),
                  Filter("50-80", min_distance=50, max_distance=80))
@@ -241,6 +242,7 @@ def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, meta_path, column:
             **_summary(es, frames),
             "headline_ci95": {k: bootstrap_ci(es, frames, k, n_boot, seed, clusters=clusters) for k in ("3d", "bev")},
             "ci_method": ci_method(clusters, n_boot),
+            "headline_ci95_0.5": {"3d": bootstrap_ci(es, frames, "3d", n_boot, seed, thr=0.5, clusters=clusters)},
             "kitti_moderate": {k: m[k]["0.7"]["R40"]["moderate"] for k in ("3d", "bev")},
             "n_gt_kitti_moderate": precision_recall(es, "3d", DIFFICULTIES[1], 0.7, frames)["num_gt"],
             "recall": _recalls(gt, stage_boxes, frames),

@@ -16,6 +16,7 @@ import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from harness.boxes import corners_bev
 from harness.kitti import frame_path, read_calib, read_image_set, read_labels, read_points
@@ -23,7 +24,7 @@ from harness.kitti import frame_path, read_calib, read_image_set, read_labels, r
 DPI = 90
 MODEL_COLOURS = ("#d62728", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")
 GT_COLOUR = "#2ca02c"
-BEV_RANGE = ((-5.0, 85.0), (-20.0, 20.0))  # (x, y) metres shown in the bird's-eye views
+BEV_RANGE = ((-5.0, 85.0), (-15.0, 15.0))  # (x, y) metres shown in the bird's-eye views
 MAX_BEV_POINTS = 30000
 DEFAULT_THRESHOLD = 0.3
 
@@ -32,7 +33,7 @@ def png(fig: Figure) -> bytes:
     """PNG bytes of a figure (no timestamp metadata, so equal figures give equal bytes)."""
     FigureCanvasAgg(fig)
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None})
+    fig.savefig(buf, format="png", dpi=DPI, metadata={"Software": None}, bbox_inches="tight")  # no label clipped
     return buf.getvalue()
 
 
@@ -59,17 +60,27 @@ def heatmap_figure(matrix: pd.DataFrame, title: str, label: str = "AP40 3D @0.7 
 
 
 def scatter_figure(points: pd.DataFrame, x: str, y: str, xlabel: str, ylabel: str, title: str) -> Figure:
-    """One labelled point per model (rows of ``points`` with columns model, x, y); log x axis."""
+    """One labelled point per model (rows of ``points`` with columns model, x, y; ``<y>_lo`` and ``<y>_hi``, when
+    present, drawn as a vertical range such as the spread over training draws); log x axis with plain numbers."""
     fig = Figure(figsize=(6.5, 4.2), layout="constrained")
     ax = fig.add_subplot()
-    for i, r in enumerate(points.itertuples(index=False)):
+    shown = [(i, r) for i, r in enumerate(points.itertuples(index=False))
+             if getattr(r, x) is not None and getattr(r, y) is not None and np.isfinite(getattr(r, x))
+             and np.isfinite(getattr(r, y))]
+    for k, (i, r) in enumerate(sorted(shown, key=lambda p: getattr(p[1], y))):
         xv, yv = getattr(r, x), getattr(r, y)
-        if xv is None or yv is None or not (np.isfinite(xv) and np.isfinite(yv)):
-            continue
         ax.scatter([xv], [yv], color=colour(i), s=60, zorder=3)
-        ax.annotate(str(r.model), (xv, yv), textcoords="offset points", xytext=(6, 4), fontsize=9)
+        lo, hi = getattr(r, f"{y}_lo", np.nan), getattr(r, f"{y}_hi", np.nan)
+        if np.isfinite(lo) and np.isfinite(hi):
+            ax.plot([xv, xv], [lo, hi], color=colour(i), lw=2, alpha=0.6, gid=f"range:{r.model}")
+        below = k % 2  # neighbours in AP alternate above and below their point, so their labels do not collide
+        ax.annotate(str(r.model), (xv, yv), textcoords="offset points", xytext=(7, -11 if below else 5), fontsize=9)
     if len(points) and (points[x].dropna() > 0).all() and points[x].notna().any():
         ax.set_xscale("log")
+        ax.xaxis.set_major_locator(LogLocator(base=10, subs=(1.0, 2.0, 5.0)))
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))  # 20, 50, 100: no 10^x notation
+        ax.xaxis.set_minor_formatter(NullFormatter())
+    ax.margins(x=0.15, y=0.12)
     ax.set(xlabel=xlabel, ylabel=ylabel, title=title)
     ax.grid(True, alpha=0.3)
     return fig
@@ -131,12 +142,13 @@ def data_figure(stats: pd.DataFrame) -> Figure:
 # ----------------------------------------------------------------------------- bird's-eye views
 @dataclass
 class BevFrame:
-    """What one bird's-eye-view panel shows (LiDAR frame)."""
+    """What the bird's-eye views show (LiDAR frame, metres): one frame, one panel per model."""
 
     title: str
     points: np.ndarray  # (N, 4)
     gt: np.ndarray  # (G, 7) Car boxes
     detections: dict = field(default_factory=dict)  # model -> (D, 7) boxes above the operating threshold
+    slow_car: np.ndarray | None = None  # (7,) the slow car's ground-truth box, when the meta names it
 
 
 def _outline(box: np.ndarray) -> np.ndarray:
@@ -145,34 +157,44 @@ def _outline(box: np.ndarray) -> np.ndarray:
     return np.vstack([c, c[:1]])
 
 
-def _bev_axes(ax, frame: BevFrame, models: list[str]) -> None:
+def _bev_axes(ax, frame: BevFrame, name: str | None, i: int, title: str) -> None:
+    """One panel: the scan, ground truth (green; the slow car thick and labelled), model ``name``'s detections."""
     pts = frame.points
     ax.scatter(pts[:, 0], pts[:, 1], s=0.05, c="#555555", rasterized=True, linewidths=0)
     for b in frame.gt:
         o = _outline(b)
-        ax.plot(o[:, 0], o[:, 1], color=GT_COLOUR, lw=1.8, gid="gt")
-    for i, name in enumerate(models):
-        for b in frame.detections.get(name, np.zeros((0, 7))):
-            o = _outline(b)
-            ax.plot(o[:, 0], o[:, 1], color=colour(i), lw=0.9, ls="--", gid=f"det:{name}")
+        ax.plot(o[:, 0], o[:, 1], color=GT_COLOUR, lw=1.2, gid="gt")
+    if frame.slow_car is not None:
+        o = _outline(frame.slow_car)
+        ax.plot(o[:, 0], o[:, 1], color=GT_COLOUR, lw=2.8, gid="slow_car")
+        ax.annotate("slow car", (o[:, 0].max(), o[:, 1].max()), xytext=(3, 6), textcoords="offset points",
+                    fontsize=8, color="#145a14", fontweight="bold")
+    for b in frame.detections.get(name, np.zeros((0, 7))) if name is not None else ():
+        o = _outline(b)
+        ax.plot(o[:, 0], o[:, 1], color=colour(i), lw=1.2, ls="--", gid=f"det:{name}")
     (x0, x1), (y0, y1) = BEV_RANGE
-    ax.set(xlim=(x0, x1), ylim=(y0, y1), aspect="equal")
-    ax.set_title(frame.title, fontsize=8)
-    ax.tick_params(labelsize=6)
+    ax.set(xlim=(x0, x1), ylim=(y0, y1), aspect="equal", xlabel="x forward (m)", ylabel="y left (m)")
+    ax.set_title(title, fontsize=10)
+    ax.tick_params(labelsize=7)
+    ax.grid(True, alpha=0.25)
 
 
-def bev_figure(frames: list[BevFrame], models: list[str], ncols: int = 3) -> Figure:
-    """A grid of bird's-eye views (x forward to the right, y left up): points, GT (green), detections."""
-    nrows = max(1, math.ceil(len(frames) / ncols))
-    fig = Figure(figsize=(5.0 * ncols, 2.5 * nrows + 0.6), layout="constrained")
+def bev_figure(frame: BevFrame, models: list[str], labels: dict | None = None, ncols: int = 2) -> Figure:
+    """One bird's-eye-view panel per model of the same frame (x forward to the right, y left up, equal scales):
+    points, ground truth (green, the slow car thick), that model's detections (dashed); the scene alone without
+    models."""
+    panels = list(models) or [None]
+    nrows = math.ceil(len(panels) / ncols)
+    fig = Figure(figsize=(6.2 * ncols, 2.6 * nrows + 0.7), layout="constrained")
     axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
-    for ax, frame in zip(axes, frames):
-        _bev_axes(ax, frame, models)
-    for ax in axes[len(frames):]:
+    for i, (ax, name) in enumerate(zip(axes, panels)):
+        _bev_axes(ax, frame, name, i, (labels or {}).get(name, name) if name is not None else "scene")
+    for ax in axes[len(panels):]:
         ax.set_axis_off()
-    handles = [Line2D([], [], color=GT_COLOUR, lw=1.8, label="ground truth")]
-    handles += [Line2D([], [], color=colour(i), ls="--", label=m) for i, m in enumerate(models)]
-    fig.legend(handles=handles, loc="outside upper center", ncols=len(handles), fontsize=9)
+    handles = [Line2D([], [], color=GT_COLOUR, lw=1.2, label="ground truth"),
+               Line2D([], [], color=GT_COLOUR, lw=2.8, label="slow car (ground truth)"),
+               Line2D([], [], color="#333333", ls="--", label="detections above the operating threshold")]
+    fig.legend(handles=handles, loc="outside upper center", ncols=3, fontsize=9, title=frame.title, title_fontsize=10)
     return fig
 
 
@@ -201,18 +223,40 @@ def _boxes(path: Path, calib, with_score: bool, threshold: float = 0.0) -> np.nd
     return labels.to_lidar(calib) if len(labels) else np.zeros((0, 7), np.float32)
 
 
-def bev_frames(run_dir, meta: pd.DataFrame, thresholds: dict[str, float], seed: int = 0) -> list[BevFrame]:
-    """Panels for one test frame per weather: scan (subsampled), GT cars and each model's detections
-    with score >= its threshold (``thresholds``: model -> score, models in legend order)."""
+def _slow_car(meta: pd.DataFrame, fid: str, path: Path, calib) -> np.ndarray | None:
+    """The slow car's (7,) box: row ``slow_car_label_index`` of the frame's label file, None when not named."""
+    if "slow_car_label_index" not in meta.columns:
+        return None
+    k = int(meta.loc[meta["frame_id"] == fid, "slow_car_label_index"].iloc[0])
+    labels = read_labels(path)
+    return labels.select(np.array([k])).to_lidar(calib)[0] if 0 <= k < len(labels) else None
+
+
+def rainiest(meta: pd.DataFrame, weathers) -> str:
+    """The weather of highest rain rate among ``weathers`` (the first on ties or without a rain-rate column)."""
+    weathers = list(weathers)
+    if "rain_rate_mmh" not in meta.columns:
+        return weathers[0]
+    rate = meta.drop_duplicates("weather").set_index("weather")["rain_rate_mmh"]
+    return max(weathers, key=lambda w: (rate.get(w, -1.0), -weathers.index(w)))
+
+
+def bev_frame(run_dir, meta: pd.DataFrame, thresholds: dict[str, float], seed: int = 0) -> BevFrame | None:
+    """The frame the bird's-eye views show: the first test frame after the lane change in the rainiest preset,
+    its scan (subsampled), GT cars, the slow car, and each model's detections with score >= its threshold
+    (``thresholds``: model -> score). None without test frames."""
     data = Path(run_dir) / "data" / "sotif"
-    ids = read_image_set(data / "ImageSets" / "test.txt")
-    out = []
-    for weather, fid in pick_frames(meta, ids).items():
-        calib = read_calib(frame_path(data, "calib", fid))
-        pts = read_points(frame_path(data, "velodyne", fid))
-        if len(pts) > MAX_BEV_POINTS:
-            pts = pts[np.random.default_rng([seed, int(fid)]).choice(len(pts), MAX_BEV_POINTS, replace=False)]
-        dets = {name: _boxes(Path(run_dir) / "predictions" / name / f"{fid}.txt", calib, True, thr)
-                for name, thr in thresholds.items()}
-        out.append(BevFrame(f"{weather} (frame {fid})", pts, _boxes(frame_path(data, "label_2", fid), calib, False), dets))
-    return out
+    picked = pick_frames(meta, read_image_set(data / "ImageSets" / "test.txt"))
+    if not picked:
+        return None
+    weather = rainiest(meta, picked)
+    fid = picked[weather]
+    calib = read_calib(frame_path(data, "calib", fid))
+    pts = read_points(frame_path(data, "velodyne", fid))
+    if len(pts) > MAX_BEV_POINTS:
+        pts = pts[np.random.default_rng([seed, int(fid)]).choice(len(pts), MAX_BEV_POINTS, replace=False)]
+    dets = {name: _boxes(Path(run_dir) / "predictions" / name / f"{fid}.txt", calib, True, thr)
+            for name, thr in thresholds.items()}
+    label_path = frame_path(data, "label_2", fid)
+    return BevFrame(f"{weather}, frame {fid}", pts, _boxes(label_path, calib, False), dets,
+                    _slow_car(meta, fid, label_path, calib))

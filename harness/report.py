@@ -10,6 +10,7 @@ before anything is written.
 from __future__ import annotations
 
 import base64
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -18,7 +19,7 @@ import pandas as pd
 from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
-from harness import figures, report_pairs, report_space, sotif, tables
+from harness import figures, notes, provenance, rain, rain_figures, report_pairs, report_space, sotif, tables
 from harness.cells import mark_capped
 from harness.kitti import atomic_write_bytes, atomic_write_text
 
@@ -29,6 +30,8 @@ SMOKE_BANNER = ("Smoke run: numbers meaningless.",  # (heading, text) on a quick
                 "runs end to end; `make run` (the default profile) gives results.")
 
 HOW_TO_READ = {  # one sentence opening each section: how to read it
+    "rain": "Compare a model's rain cells with its dry cell: a loss counts where the intervals do not overlap. "
+            "The IoU 0.5 rows are the figures the summary quotes.",
     "models": "Each row is one detector: compare the SOTIF columns (higher AP and more presets passed are "
               "better, lower latency is cheaper); the val column shows how well each one trained.",
     "main": "Read a row to compare the models in one weather and a column to see how one model's AP falls "
@@ -39,7 +42,7 @@ HOW_TO_READ = {  # one sentence opening each section: how to read it
     "sotif": "Look for FAIL cells: each marks a weather in which the model would have found the slow car too "
              "late, or never, for the ego to brake.",
     "robustness": "1.0 means as good as in clear weather and less means worse; mRR condenses a model's rain and wet"
-                  " presets into one such number.",
+                  " presets into one such number, and only an interval wholly below 1 is a measurable loss.",
     "detail": "Check the cars columns before trusting a small AP: an AP over few cars is capped and noisy.",
     "runtime": "Fewer milliseconds is faster; an ORT speed-up above 1 means onnxruntime beats torch eager, and "
                "the agreement columns should read 1.00 (all frames the same boxes) with tiny score differences.",
@@ -78,9 +81,17 @@ COLUMN_NAMES = {
 }
 
 
+MODEL_LABELS = {"pointpillars": "PointPillars", "second": "SECOND", "dv_second": "DV-SECOND", "parta2": "Part-A2",
+                "pv_rcnn": "PV-RCNN", "point_rcnn": "PointRCNN", "mvx_net": "MVX-Net"}
+
+
 def readable(df: pd.DataFrame) -> pd.DataFrame:
-    """``df`` with the column headers a reader sees (model names and other columns as they are)."""
-    return df.rename(columns=COLUMN_NAMES)
+    """``df`` as a reader sees it: headers in words (``COLUMN_NAMES``, the models' published names, any other
+    underscore as a space) and the models' published names in a ``model`` column."""
+    out = df.rename(columns=lambda c: str(COLUMN_NAMES.get(c, MODEL_LABELS.get(c, c))).replace("_", " "))
+    if "model" in out.columns:
+        out["model"] = out["model"].map(lambda m: MODEL_LABELS.get(m, m) if isinstance(m, str) else m)
+    return out
 
 
 @dataclass
@@ -94,6 +105,8 @@ class Section:
     figures: list  # figure names (keys of the rendered figure dict)
     details: bool = False  # long tables folded away in the HTML
     figures_first: bool = False
+    notes: tuple = ()  # short statements of what the numbers do not say, printed below the intro
+    lead: bool = False  # shown first, above the models at a glance
 
     @property
     def read(self) -> str:
@@ -103,16 +116,18 @@ class Section:
 # ----------------------------------------------------------------------------- figures
 def _figure_specs(run: tables.Run, t: dict) -> dict:
     """``{name: (caption, Figure)}`` for every figure the run has the data for."""
-    specs = {}
-    matrix = tables.headline_matrix(t["weather_detail"])
-    if not matrix.empty:
-        specs["heatmap"] = ("Headline AP40 3D @0.7 (all distances, no 2D-height filter) per weather preset and model.",
-                            figures.heatmap_figure(matrix, "Headline AP per weather preset"))
+    specs = _rain_figures(run, t)
     overall = pd.DataFrame({"model": list(run.results),
                             "ap": [r["headline"]["3d"]["0.7"] for r in run.results.values()]})
+    draws = t.get("draws", pd.DataFrame())
+    if not draws.empty:  # the spread over training draws, drawn as a vertical range
+        overall = overall.merge(draws[["model", "AP3D min", "AP3D max"]].rename(
+            columns={"AP3D min": "ap_lo", "AP3D max": "ap_hi"}), on="model", how="left")
     if not t["runtime"].empty:
         pts = overall.merge(t["runtime"][["model", "ort_p50_ms"]], on="model", how="left")
-        specs["ap_latency"] = ("Overall headline AP against onnxruntime latency per frame (p50, log scale).",
+        pts["model"] = pts["model"].map(lambda m: MODEL_LABELS.get(m, m))
+        specs["ap_latency"] = ("Overall headline AP against onnxruntime latency per frame (p50, log scale); a vertical "
+                               "bar spans the model's training draws when the run has several.",
                                figures.scatter_figure(pts, "ort_p50_ms", "ap", "onnxruntime latency p50 (ms)",
                                                       "AP40 3D @0.7 (%)", "Accuracy vs latency"))
     curves = {n: (r["pr_curve_raw"]["recall"], r["pr_curve_raw"]["precision"]) for n, r in run.results.items()
@@ -132,13 +147,40 @@ def _figure_specs(run: tables.Run, t: dict) -> dict:
     data_dir = run.run_dir / "data" / "sotif"
     if run.meta is not None and (data_dir / "ImageSets" / "test.txt").is_file():
         thr = {n: _threshold(m) for n, m in run.summary["models"].items()}
-        frames = figures.bev_frames(run.run_dir, run.meta, thr)
-        if frames:
-            specs["bev"] = ("Bird's-eye view of one test frame per weather (the first after the lane change): points, "
-                            "ground truth (green), each model's detections above its operating threshold (dashed).",
-                            figures.bev_figure(frames, list(thr)))
+        frame = figures.bev_frame(run.run_dir, run.meta, thr)
+        if frame is not None:
+            specs["bev"] = ("Bird's-eye view of one test frame, the first after the lane change in the rainiest preset, "
+                            "one panel per model: points, ground truth (green, the slow car thick), the model's "
+                            "detections above its operating threshold (dashed); metres in the LiDAR frame.",
+                            figures.bev_figure(frame, list(thr), MODEL_LABELS))
     specs.update(report_pairs.figure_specs(t))
     return {**specs, **report_space.figure_specs(run.summary, t)}
+
+
+def _rain_figures(run: tables.Run, t: dict) -> dict:
+    """The rain story's figure and the two weather heat maps (presets by time of day, then rain rate)."""
+    specs = {}
+    if not t["rain"].empty:
+        specs["rain"] = ("Headline AP40 3D per model in dry, wet and rain (all times of day) and the noon rain grades "
+                         "(soft 4.5, mid 18, hard 50 mm/h), at IoU 0.5 (top) and 0.7 (bottom); bars: 95% bootstrap "
+                         "interval over frames.", rain_figures.rain_figure(t["rain"], MODEL_LABELS))
+    matrix = tables.headline_matrix(t["weather_detail"])
+    if matrix.empty:
+        return specs
+    order = rain.preset_order(matrix.index, run.meta)
+    matrix = matrix.reindex(order).rename(columns=lambda m: MODEL_LABELS.get(m, m))
+    groups = rain.time_groups(order, run.meta)
+    facts = rain.preset_facts(run.meta)
+    rates = facts["rain_rate_mmh"].to_dict() if not facts.empty else {}
+    specs["heatmap"] = ("Headline AP40 3D @0.7 (all distances, no 2D-height filter) per weather preset and model, "
+                        "presets grouped by time of day and ordered by rain rate.",
+                        rain_figures.ordered_heatmap(matrix, groups, rates, "Headline AP per weather preset"))
+    delta = rain.clear_delta(matrix, run.meta)
+    if delta.notna().any().any():
+        specs["heatmap_delta"] = ("The same AP minus that of the same time of day's clear preset (ClearNoon, "
+                                  "ClearSunset, ClearNight), in points: red is a loss, blue a gain.",
+                                  rain_figures.delta_heatmap(delta, groups, rates, "AP relative to clear weather"))
+    return specs
 
 
 def _threshold(model: dict) -> float:
@@ -191,13 +233,17 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                      "draws, next to the width of the 95% bootstrap interval over frames of draw 0's headline AP "
                      "in its narrowest and widest weather group. The other tables show draw 0.",
                      [("", t["draws"], 1)], [])] if "draws" in t else []
+    order = rain.preset_order(t["weather_headline"].get("weather", []), run.meta)
+    by_weather = t["weather_headline"].set_index("weather").reindex(order).reset_index() if order else t["weather_headline"]
+    relative = t["relative_ap"].set_index("weather").reindex(order).reset_index() if order else t["relative_ap"]
     out = [
+        _rain_section(t["rain"]),
         Section("main", "Headline AP per weather preset",
                 "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% intervals by "
-                f"{report_space.ci_method(run.results)} (the SOTIF targets are far and small, so KITTI's "
-                "moderate/hard filters would ignore "
-                "most of them).", [("", _ci_display(t["weather_headline"], models), 1)], ["heatmap"],
-                figures_first=True),
+                f"{report_space.ci_method(run.results)} (the SOTIF targets are far and small, so KITTI's moderate/hard filters would ignore "
+                "most of them); presets grouped by time of day, by rain rate within.",
+                [("", _ci_display(by_weather, models), 1)], ["heatmap", "heatmap_delta"], figures_first=True,
+                notes=tuple(n for n in (notes.lidar_twins_note(run.meta), notes.fog_note(run.meta)) if n)),
         *draws, *[Section(*s) for s in report_pairs.sections(t, run.summary)],
         Section("paper", "KITTI protocol (the paper's tables)",
                 "AP11 and AP40 at IoU 0.7 for 2D bbox, BEV, 3D and AOS with KITTI's easy/moderate/hard filters; "
@@ -209,12 +255,16 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "the gap from the ego's front bumper to its rear face left at that moment if the ego had kept its "
                 "closing speed dv from the lane change (the simulated ego brakes on ground truth), vs the stopping "
                 f"distance dv*{c['t_react_s']:g} s + dv^2/(2*{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m, "
-                "and the time after the lane change.", [("", t["sotif_matrix"], 1)], []),
+                "and the time after the lane change.", [("", t["sotif_matrix"], 1)], [],
+                notes=tuple(n for n in (notes.sotif_leniency(t["sotif"]),) if n)),
         *_space_section(run, t),
         Section("robustness", "Robustness",
                 "AP relative to each model's clean value (mean of ClearNoon and ClearSunset); mRR = mean relative "
-                "AP over the rain and wet presets (Robo3D); headline AP by time of day and precipitation class.",
-                [("Summary", t["robustness"], 2), ("AP relative to clean, per weather", t["relative_ap"], 2),
+                "AP over the rain and wet presets (Robo3D), with a 95% interval from the presets' bootstrap intervals "
+                "(delta method); the worst preset is the rain or wet preset of lowest relative AP; headline AP by "
+                "time of day and precipitation class.",
+                [("Summary", rain.robustness_display(t["robustness"]), 2),
+                 ("AP relative to clean, per weather", relative, 2),
                  ("By time of day (AP40 3D @0.7)", _group_matrix(t["time_of_day"], "time_of_day"), 1),
                  ("By precipitation class (AP40 3D @0.7)", _group_matrix(t["precipitation_class"],
                                                                          "precipitation_class"), 1)], []),
@@ -248,6 +298,17 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
     return out
 
 
+def _rain_section(long: pd.DataFrame) -> Section:
+    """The report's lead: per model, dry / wet / rain and the rain grades at both IoUs, with their intervals."""
+    counts = long.drop_duplicates("condition") if not long.empty else long
+    behind = ", ".join(f"{r.condition} {r.n_frames} frames / {r.n_car} cars" for r in counts.itertuples())
+    return Section("rain", "Which detectors hold up in rain",
+                   "AP40 3D, all distances, no 2D-height filter, [95% bootstrap interval over frames]. Dry / wet / "
+                   "rain: all presets of that class and time of day; soft / mid / hard rain: the noon rain presets "
+                   f"(4.5, 18, 50 mm/h). Behind each cell: {behind or 'no groups'}.",
+                   [("", rain.rain_display(long), 1)], ["rain"], lead=True)
+
+
 # ----------------------------------------------------------------------------- rendering
 def _overview(run: tables.Run) -> dict:
     s, data = run.summary, run.summary.get("data", {})
@@ -255,12 +316,17 @@ def _overview(run: tables.Run) -> dict:
                "uses_camera": bool(m.get("uses_camera"))} for n, m in s["models"].items()]
     frames = {k: data.get(f"n_{k}_frames") for k in ("test", "val", "train")}
     total = sum(v for v in (s.get("stage_seconds") or {}).values() if isinstance(v, (int, float)))
+    vals = notes.val_sets(run.run_dir, s)
     return {"profile": s.get("profile", "?"), "smoke": SMOKE_BANNER if s.get("profile") == "quick" else None,
             "created": s.get("created", "?"), "models": models, "frames": frames, "total_seconds": total or None,
-            "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"],
-            "val": _val_set(s), "draws_note": report_pairs.draws_note(s)}
+            "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"], "vals": vals, "val": _val_set(s), "draws_note": report_pairs.draws_note(s),
+            "val_note": notes.val_note(vals), "val_header": notes.val_header(vals), "code": provenance.compare(s.get("code")), "glossary": _glossary(run.run_dir)}
 
 
+def _glossary(run_dir: Path) -> str | None:
+    """The relative link from the run folder to docs/glossary.md of this checkout, None when there is none."""
+    doc = provenance.ROOT / "docs" / "glossary.md"
+    return Path(os.path.relpath(doc, run_dir.resolve())).as_posix() if doc.is_file() else None
 def _val_set(summary: dict) -> str:
     """What the models table's val column was measured on."""
     val = next((m["val"] for m in summary["models"].values() if isinstance(m.get("val"), dict)), None)

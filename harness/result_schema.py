@@ -55,7 +55,7 @@ _AT_IOU = {"0.3": NUMBER, "0.5": NUMBER, "0.7": NUMBER}
 _RECALL = {"roi?": _AT_IOU, "rcnn?": _AT_IOU}
 _GROUP_ROW = {
     "n_frames": NUMBER, "n_car": NUMBER, "headline": {"3d": {"0.7": NUMBER, "0.5": NUMBER}, "bev": {"0.7": NUMBER}},
-    "headline_ci95": {"3d": ListOf(NUMBER, 2)}, "kitti_moderate": {"3d": NUMBER, "bev": NUMBER},
+    "headline_ci95": {"3d": ListOf(NUMBER, 2)}, "headline_ci95_0.5?": {"3d": ListOf(NUMBER, 2)}, "kitti_moderate": {"3d": NUMBER, "bev": NUMBER},
     "distance": {"3d": {"0.7": _BINS}}, "recall": {"rcnn?": {"0.5?": NUMBER, "0.7?": NUMBER}},
     "n_gt_kitti_moderate?": NUMBER, "ci_method?": TEXT, "n_gt?": {"0-30?": NUMBER, "30-50?": NUMBER, "50-80?": NUMBER},
 }

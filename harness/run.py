@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import valset
+from harness import provenance, valset
 from harness.jobs import interrupted, job_init
 from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
 from harness.stages import Stages, file_digest
@@ -485,7 +485,9 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         stale = remove_temp_files(run_dir)
         if stale and progress:
             print(f"removed {len(stale)} temp file(s) of writes an interrupted run left unfinished", flush=True)
-        atomic_write_text(run_dir / "config.json", json.dumps({**asdict(cfg), "models": names, "runtime": runtime}, indent=1))
+        code = provenance.record()  # the commit and sources digest that the report compares with the checkout
+        atomic_write_text(run_dir / "config.json", json.dumps({**asdict(cfg), "models": names, "runtime": runtime,
+                                                               "code": code}, indent=1))
         stages = Stages(run_dir, progress)
         t0 = time.perf_counter()
         train_hash = _simulate(stages, cfg, run_dir / "data", "train")
@@ -502,7 +504,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         ids = lambda s: len((run_dir / "data" / "sotif" / "ImageSets" / f"{s}.txt").read_text().split())
         infos = {p.stem: json.loads(p.read_text())["info"] for p in sorted((run_dir / ".stages").glob("*.json"))}
         result = {"schema": RUN_SCHEMA, "profile": profile, "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                  "config": asdict(cfg), "models": summary,
+                  "config": asdict(cfg), "code": code, "models": summary,
                   "data": {"n_test_frames": ids("test"), "n_val_frames": ids("val"),
                            "n_train_frames": len((run_dir / "data" / "train" / "ImageSets" / "train.txt").read_text().split()),
                            "stats": "tables/data_stats.csv"},

@@ -209,24 +209,6 @@ def relative_ap(matrix: pd.DataFrame, clean=CLEAN_PRESETS) -> tuple[pd.Series, p
     return clean_ap, matrix.div(clean_ap.where(clean_ap > 0), axis=1)
 
 
-def robustness_table(matrix: pd.DataFrame, meta: pd.DataFrame | None = None) -> pd.DataFrame:
-    """Per model: clean AP (mean of ClearNoon/ClearSunset), Robo3D-style mRR over the rain/wet presets
-    (mean of AP_w / AP_clean), the worst preset and its relative AP."""
-    cols = ["model", "clean_ap3d", "mRR", "n_corrupt_presets", "worst_preset", "worst_rel"]
-    if matrix.empty:
-        return pd.DataFrame(columns=cols)
-    clean_ap, rel = relative_ap(matrix)
-    corrupt = corrupt_presets(list(matrix.index), meta)
-    rows = []
-    for name in matrix.columns:
-        r = rel[name].dropna()
-        rows.append({"model": name, "clean_ap3d": clean_ap[name],
-                     "mRR": float(rel.loc[corrupt, name].mean()) if corrupt else np.nan,
-                     "n_corrupt_presets": len(corrupt), "worst_preset": r.idxmin() if len(r) else None,
-                     "worst_rel": float(r.min()) if len(r) else np.nan})
-    return pd.DataFrame(rows, columns=cols)
-
-
 def relative_table(matrix: pd.DataFrame) -> pd.DataFrame:
     """Per weather x model: headline AP relative to the model's clean AP (1.0 = as in clear weather)."""
     if matrix.empty:
@@ -447,13 +429,15 @@ def draws_table(run: Run) -> pd.DataFrame:
 def build_tables(run: Run) -> dict[str, pd.DataFrame]:
     """Every table of the report, by name (empty DataFrames for parts the run does not have)."""
     from harness.pairs_run import pair_tables
+    from harness import rain  # the rain story and robustness build on this module's group tables
     weather = group_table(run.results, "weather")
     matrix = headline_matrix(weather)
     sotif = sotif_table(run.summary, order=list(matrix.index))
     t = {
         "kitti_ap": kitti_ap_table(run.results), "recall": recall_table(run.results),
         "weather_headline": headline_with_ci(weather), "weather_detail": weather,
-        "robustness": robustness_table(matrix, run.meta), "relative_ap": relative_table(matrix),
+        "rain": rain.rain_long(run.results),
+        "robustness": rain.robustness_table(weather, run.meta), "relative_ap": relative_table(matrix),
         "time_of_day": group_table(run.results, "time_of_day"),
         "precipitation_class": group_table(run.results, "precipitation_class"),
         "sotif": sotif, "sotif_matrix": sotif_matrix(sotif), "runtime": runtime_table(run.summary),

@@ -14,6 +14,9 @@ from harness.kitti import KittiError, Labels
 from harness.sotif import sotif_view
 
 WEATHERS = {"ClearNoon": ("Noon", "dry"), "ClearSunset": ("Sunset", "dry"), "HardRainNight": ("Night", "rain")}
+FACTS = {"ClearNoon": (5.0, 0.0, 0.0, 0.0, 0.0), "ClearSunset": (5.0, 0.0, 0.0, 0.0, 0.0),  # cloudiness, precipitation,
+         "HardRainNight": (100.0, 100.0, 90.0, 100.0, 50.0)}  # deposits, wetness, rain mm/h (simulator.weather)
+FACT_COLUMNS = ("cloudiness", "precipitation", "precipitation_deposits", "wetness", "rain_rate_mmh")
 
 
 def _frame(rng, data, fid, k):
@@ -51,7 +54,7 @@ def make_run(root, models=(("alpha", 0.1, False), ("beta", 0.6, True)), sotif_co
             rows.append({"frame_id": fid, "split": "val" if k == 0 else "test", "weather": weather, "time_of_day": tod,
                          "precipitation_class": precip, "scenario_time_s": 0.5 * k, "lane_change_time_s": 0.5,
                          "slow_car_label_index": 0, "ego_speed_mps": 25.0, "slow_car_speed_mps": 16.7,
-                         "n_points": 450})
+                         "n_points": 450, **dict(zip(FACT_COLUMNS, FACTS[weather]))})
     meta = pd.DataFrame(rows)
     if not sotif_columns:
         meta = meta[["frame_id", "split", "weather", "time_of_day", "precipitation_class", "n_points"]]
@@ -95,9 +98,11 @@ def test_render_writes_a_self_contained_report(rendered):
     assert not re.search(r"https?://|<script|<link", html)
     srcs = re.findall(r'src="([^"]*)"', html)
     assert srcs and all(s.startswith("data:image/png;base64,") for s in srcs)
-    assert len(srcs) == 7  # heatmap, AP/latency, PR curves, AP/distance, data per weather, BEV, paired differences
-    # the reader sees what was run, then the heatmap, then the main table, then the rest
-    pos = [html.index(s) for s in ("profile</b> quick", "alpha, beta", "Models at a glance", 'alt="heatmap"', "HardRainNight", 'id="paper"')]
+    assert len(srcs) == 9  # rain, heatmap, relative to clear, AP/latency, PR curves, AP/distance, data, BEV, paired differences
+    # the reader sees what was run, then the rain story, the models, the heatmaps, the main table, then the rest
+    pos = [html.index(s) for s in ("profile</b> quick", "alpha, beta", 'id="rain"', 'alt="rain"',
+                                   "Models at a glance", 'alt="heatmap"', 'alt="heatmap_delta"', "HardRainNight",
+                                   'id="paper"')]
     assert pos == sorted(pos)
     assert 'id="sotif"' in html and "Recall of two-stage models" in html
     assert re.search(r'<td class="(pass|fail)">(pass|FAIL) ', html)
@@ -221,3 +226,50 @@ def test_capped_and_empty_aps_read_as_such_in_both_reports(rendered):
     assert any("(" in e for e in expected)  # 9 test frames: capped or empty bins
     for text in (md, html):
         assert all(e in text for e in expected)
+
+
+def test_sotif_leniency_states_the_slack_from_the_rows():
+    from harness import notes, tables
+    rows = pd.DataFrame({"weather": ["A", "B", "C"], "model": "m", "detected": [True, True, False],
+                         "distance_m": [52.0, 47.5, None], "distance_at_lane_change_m": [61.0, 46.0, 46.0],
+                         "closing_speed_mps": [8.0, 8.0, 8.0], "stopping_distance_m": [19.0, 19.0, 19.0],
+                         "verdict": ["pass", "pass", "FAIL"]})
+    text = notes.sotif_leniency(rows)
+    slack = (46.0 - 19.0) / 8.0
+    assert "46-61 m ahead" in text and "needs 19 m" in text and f"up to {slack:.1f} s" in text
+    assert "2 of 3 cells pass" in text and "detections came 48-52 m ahead" in text
+    assert notes.sotif_leniency(pd.DataFrame(columns=tables.SOTIF_COLUMNS)) == ""
+
+
+def test_lidar_fog_and_val_notes(tmp_path):
+    from harness import notes
+    meta = pd.DataFrame({"weather": ["ClearNoon", "ClearNight", "HardRainNoon"], "time_of_day": ["Noon", "Night", "Noon"],
+                         "rain_rate_mmh": [0.0, 0.0, 50.0], "precipitation": [0.0, 0.0, 100.0],
+                         "precipitation_deposits": [0.0, 0.0, 90.0], "wetness": [0.0, 0.0, 100.0],
+                         "cloudiness": [5.0, 5.0, 100.0]})
+    text = notes.lidar_twins_note(meta)
+    assert "tells 2 conditions apart among these 3 presets" in text and "ClearNoon = ClearNight" in text
+    assert notes.lidar_twins_note(None) == "" and notes.fog_note(None) == ""
+    assert "No preset of this run has LiDAR fog" in notes.fog_note(meta)
+    assert notes.fog_note(meta.assign(lidar_fog_mor_m=[0.0, 0.0, 200.0])) == "Presets with LiDAR fog: HardRainNoon."
+    kitti.write_image_set(tmp_path / "data" / "train" / "ImageSets" / "val.txt", ["000001", "000002"])
+    vals = notes.val_sets(tmp_path, {"data": {"n_val_frames": 7}})
+    assert vals == {"sotif": 7, "training": 2}
+    assert "on 2 held-out dry frames" in notes.val_note(vals) and "the 7 val frames" in notes.val_note(vals)
+
+
+def test_report_leads_with_the_rain_story_and_says_what_its_numbers_do_not(rendered):
+    run_dir, html = rendered[0], rendered[1].decode("utf-8")
+    md = (run_dir / "report.md").read_text()
+    assert md.index("## Which detectors hold up in rain") < md.index("## Models at a glance")
+    rain = pd.read_csv(run_dir / "tables" / "rain.csv", dtype={"iou": str})
+    res = json.loads((run_dir / "results" / "beta.json").read_text())
+    dry = res["groups_by"]["precipitation_class"]["rows"]["dry"]
+    row = rain[(rain.model == "beta") & (rain.condition == "dry") & (rain.iou == "0.5")].iloc[0]
+    assert row.ap == pytest.approx(dry["headline"]["3d"]["0.5"]) and row.ap_lo == dry["headline_ci95_0.5"]["3d"][0]
+    assert f"| beta | 0.5 | {row.ap:.1f} [{row.ap_lo:.1f}, {row.ap_hi:.1f}] |" in md
+    for text in (html, md):
+        assert "SOTIF val 3 (operating thresholds)" in text and "How lenient this is" in text
+        assert "No preset of this run has LiDAR fog" in text and "tells 2 conditions apart" in text
+        assert "the run does not record the code" in text  # the fake run predates the record
+    assert "worst rain/wet preset" in html and "ClearNoon</td><td>" not in html.split('id="robustness"')[1][:3000]

@@ -4,11 +4,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import tables
+from harness import rain, tables
 from harness.kitti import KittiError
 
 WEATHERS = ["ClearNoon", "WetNoon", "HardRainNoon", "ClearSunset", "CloudyNight", "SoftRainNight"]
 BINS = ("0-30", "30-50", "50-80")
+CLEAN = ("ClearNoon", "ClearSunset")
 
 
 def _kitti(rng):
@@ -75,19 +76,125 @@ def test_group_table_and_matrix_keep_weather_order():
 
 def test_robustness_against_plain_python():
     rng = np.random.default_rng(2)
+    meta = pd.DataFrame({"weather": WEATHERS, "precipitation_class": ["dry", "wet", "rain", "dry", "dry", "rain"]})
+    corrupt = ["WetNoon", "HardRainNoon", "SoftRainNight"]
     for _ in range(20):
-        aps = {name: {w: float(rng.uniform(0, 100)) for w in WEATHERS} for name in ("a", "b", "c")}
-        aps["c"]["ClearNoon"] = aps["c"]["ClearSunset"] = 0.0  # no clean AP: relative values undefined
-        matrix = pd.DataFrame(aps).loc[WEATHERS]
-        rob = tables.robustness_table(matrix).set_index("model")
-        corrupt = ["WetNoon", "HardRainNoon", "SoftRainNight"]
+        results = {name: fake_result(rng) for name in ("a", "b", "c")}
+        for w in CLEAN:  # no clean AP for c: relative values undefined
+            results["c"]["groups_by"]["weather"]["rows"][w]["headline"]["3d"]["0.7"] = 0.0
+        aps = {n: {w: r["groups_by"]["weather"]["rows"][w]["headline"]["3d"]["0.7"] for w in WEATHERS}
+               for n, r in results.items()}
+        rob = rain.robustness_table(tables.group_table(results, "weather"), meta).set_index("model")
         for name in ("a", "b"):
             clean = (aps[name]["ClearNoon"] + aps[name]["ClearSunset"]) / 2
             assert rob.loc[name, "clean_ap3d"] == pytest.approx(clean)
             assert rob.loc[name, "mRR"] == pytest.approx(sum(aps[name][w] / clean for w in corrupt) / 3)
-            worst = min(WEATHERS, key=lambda w: aps[name][w])
-            assert rob.loc[name, "worst_preset"] == worst
+            assert rob.loc[name, "mRR_lo"] < rob.loc[name, "mRR"] < rob.loc[name, "mRR_hi"]
+            assert rob.loc[name, "worst_preset"] == min(corrupt, key=lambda w: aps[name][w])  # never a clean preset
+            lo, hi = rob.loc[name, ["mRR_lo", "mRR_hi"]]
+            assert rob.loc[name, "reading"] == ("measurable loss" if hi < 1 else "measurable gain" if lo > 1
+                                                else "no measurable loss")
         assert np.isnan(rob.loc["c", "mRR"])
+
+
+def test_ratio_interval_against_monte_carlo():
+    rng = np.random.default_rng(3)
+    for _ in range(10):
+        a, c = rng.uniform(40, 90, 2)
+        s_a, s_c = rng.uniform(0.5, 3.0, 2)
+        r, lo, hi = rain.ratio_interval(a, s_a, c, s_c)
+        draws = rng.normal(a, s_a, 400_000) / rng.normal(c, s_c, 400_000)
+        assert r == pytest.approx(a / c)
+        assert (hi - lo) / (2 * rain.Z95) == pytest.approx(draws.std(), rel=0.03)
+    assert np.isnan(rain.ratio_interval(1.0, 0.1, 0.0, 0.1)[0])
+    assert rain.reading(0.95, 1.21) == "no measurable loss" and rain.reading(0.7, 0.9) == "measurable loss"
+
+
+def _rain_result(rng):
+    res = fake_result(rng)
+    for rows in (res["groups_by"]["weather"]["rows"],):
+        for w in ("SoftRainNoon", "MidRainyNoon"):
+            rows[w] = _row(rng, 3)
+    res["groups_by"]["precipitation_class"] = {"column": "precipitation_class",
+                                               "rows": {c: _row(rng, 5) for c in ("dry", "wet", "rain")}}
+    for rows in (res["groups_by"]["weather"]["rows"], res["groups_by"]["precipitation_class"]["rows"]):
+        for row in rows.values():
+            ap = row["headline"]["3d"]["0.5"]
+            row["headline_ci95_0.5"] = {"3d": [ap - 2, ap + 1]}
+    return res
+
+
+def test_rain_story_reads_the_groups_at_both_ious():
+    rng = np.random.default_rng(4)
+    results = {"a": _rain_result(rng), "b": _rain_result(rng)}
+    long = rain.rain_long(results)
+    assert set(long["condition"]) == {"dry", "wet", "rain", "soft rain", "mid rain", "hard rain"}
+    for r in long.itertuples():
+        by = "precipitation_class" if r.condition in rain.PRECIPITATION else "weather"
+        row = results[r.model]["groups_by"][by]["rows"][r.group]
+        ci = row["headline_ci95"]["3d"] if r.iou == "0.7" else row["headline_ci95_0.5"]["3d"]
+        assert (r.ap, r.ap_lo, r.ap_hi, r.n_car) == (row["headline"]["3d"][r.iou], ci[0], ci[1], row["n_car"])
+    wide = rain.rain_display(long)
+    assert wide[["model", "IoU"]].values.tolist() == [["a", "0.5"], ["b", "0.5"], ["a", "0.7"], ["b", "0.7"]]
+    row = results["b"]["groups_by"]["precipitation_class"]["rows"]["rain"]
+    ap = row["headline"]["3d"]["0.5"]
+    assert wide.loc[1, "rain"] == f"{ap:.1f} [{ap - 2:.1f}, {ap + 1:.1f}]"
+    assert list(wide.columns) == ["model", "IoU", "dry", "wet", "rain", "soft rain", "mid rain", "hard rain"]
+    old = _rain_result(rng)  # a results file evaluated before the interval at IoU 0.5 was recorded
+    del old["groups_by"]["weather"]["rows"]["HardRainNoon"]["headline_ci95_0.5"]
+    hard = rain.rain_long({"a": old}).query("condition == 'hard rain'").set_index("iou")
+    assert np.isnan(hard.loc["0.5", "ap_lo"]) and not hard[["ap"]].isna().any().item()
+    assert not hard.loc["0.7", ["ap_lo", "ap_hi"]].isna().any()
+    ap = hard.loc["0.5", "ap"]
+    assert rain.rain_display(rain.rain_long({"a": old})).loc[0, "hard rain"] == f"{ap:.1f}"
+
+
+def _preset_meta():
+    from simulator import weather as sw
+    rows = [{"weather": n, "time_of_day": sw.time_of_day(p), "rain_rate_mmh": sw.rain_rate_mmh(p),
+             "precipitation": p.precipitation, "precipitation_deposits": p.precipitation_deposits,
+             "wetness": p.wetness, "cloudiness": p.cloudiness, "precipitation_class": sw.precipitation_class(p)}
+            for n, p in sw.WEATHER_PRESETS.items()]
+    return pd.DataFrame(rows), sw
+
+
+def test_presets_ordered_by_time_of_day_then_rain_rate():
+    meta, sw = _preset_meta()
+    order = rain.preset_order(list(reversed(meta["weather"])) + ["Unknown"], meta)
+    assert order[-1] == "Unknown" and sorted(order[:-1]) == sorted(meta["weather"])
+    key = [(("Noon", "Sunset", "Night").index(sw.time_of_day(sw.WEATHER_PRESETS[w])),
+            sw.rain_rate_mmh(sw.WEATHER_PRESETS[w]), sw.road_water_cover(sw.WEATHER_PRESETS[w])) for w in order[:-1]]
+    assert key == sorted(key)
+    assert order[:2] == ["ClearNoon", "CloudyNoon"] and order[6] == "HardRainNoon"
+    assert rain.clear_of_time(meta) == {"Noon": "ClearNoon", "Sunset": "ClearSunset", "Night": "ClearNight"}
+    groups = rain.time_groups(order[:-1], meta)
+    assert [(t, b, e) for t, b, e in groups] == [("Noon", 0, 7), ("Sunset", 7, 14), ("Night", 14, 21)]
+
+
+def test_clear_delta_against_plain_python():
+    meta, sw = _preset_meta()
+    rng = np.random.default_rng(5)
+    matrix = pd.DataFrame(rng.uniform(0, 100, (21, 2)), index=meta["weather"], columns=["a", "b"])
+    delta = rain.clear_delta(matrix.drop(index="ClearNight"), meta)
+    for w in delta.index:
+        t = sw.time_of_day(sw.WEATHER_PRESETS[w])
+        for m in ("a", "b"):
+            if t == "Night":
+                assert np.isnan(delta.loc[w, m])  # its clear preset is not in the matrix
+            else:
+                assert delta.loc[w, m] == pytest.approx(matrix.loc[w, m] - matrix.loc[f"Clear{t}", m])
+
+
+def test_lidar_twins_share_rain_rate_and_road_water():
+    meta, sw = _preset_meta()
+    groups = rain.lidar_twins(meta)
+    assert sorted(w for g in groups for w in g) == sorted(meta["weather"])
+    for g in groups:
+        keys = {(sw.rain_rate_mmh(sw.WEATHER_PRESETS[w]), sw.road_water_cover(sw.WEATHER_PRESETS[w])) for w in g}
+        assert len(keys) == 1
+    assert len({(sw.rain_rate_mmh(p), sw.road_water_cover(p)) for p in sw.WEATHER_PRESETS.values()}) == len(groups)
+    assert ["ClearNoon", "CloudyNoon", "ClearSunset", "CloudySunset", "ClearNight", "CloudyNight"] in groups
+    assert rain.lidar_twins(None) == []
 
 
 def test_corrupt_presets_follow_meta():
