@@ -50,14 +50,16 @@ def fog_note(meta: pd.DataFrame | None) -> str:
     if meta is None or "weather" not in meta.columns:
         return ""
     foggy = []
-    if "lidar_fog_mor_m" in meta.columns:
-        mor = meta.drop_duplicates("weather").set_index("weather")["lidar_fog_mor_m"].astype(float)
+    column = next((c for c in ("lidar_fog_mor_m", "fog_mor_m") if c in meta.columns), None)
+    if column:
+        mor = meta.drop_duplicates("weather").set_index("weather")[column].astype(float)
         foggy = [w for w, v in mor.items() if v > 0]
     if foggy:
         return f"Presets with LiDAR fog: {', '.join(foggy)}."
     return ("No preset of this run has LiDAR fog: CARLA's fog_density is a rendering device of the camera image "
             "(its night presets carry 60-100 to darken it), a clear atmosphere at 905 nm; fog is simulated only for "
-            "a fog visibility set explicitly (docs/simulator.md).")
+            "a fog visibility set explicitly: the sweep set's fog axis (50-2000 m, docs/simulator.md), when the run "
+            "has one, is where fog shows.")
 
 
 def _count(path: Path) -> int | None:

@@ -254,8 +254,13 @@ def test_lidar_fog_and_val_notes(tmp_path):
     assert notes.fog_note(meta.assign(lidar_fog_mor_m=[0.0, 0.0, 200.0])) == "Presets with LiDAR fog: HardRainNoon."
     kitti.write_image_set(tmp_path / "data" / "train" / "ImageSets" / "val.txt", ["000001", "000002"])
     vals = notes.val_sets(tmp_path, {"data": {"n_val_frames": 7}})
-    assert vals == {"sotif": 7, "training": 2}
+    assert vals == {"sotif": 7, "training": 2, "valset": None}
     assert "on 2 held-out dry frames" in notes.val_note(vals) and "the 7 val frames" in notes.val_note(vals)
+    assert "SOTIF val 7 (operating thresholds)" in notes.val_header(vals)
+    kitti.write_image_set(tmp_path / "data" / "val_frames.txt", [f"{i:06d}" for i in range(5)])
+    vals = notes.val_sets(tmp_path, {"data": {"n_val_frames": 0}})
+    assert vals["valset"] == 5 and notes.val_header(vals) == "val set 5 (val AP and operating thresholds)"
+    assert "the run's 5 held-out frames" in notes.val_note(vals) and "operating thresholds" in notes.val_note(vals)
 
 
 def test_report_leads_with_the_rain_story_and_says_what_its_numbers_do_not(rendered):
