@@ -102,9 +102,19 @@ def voxelize(points: np.ndarray, cfg) -> dict:
 
     r = cfg.POINT_CLOUD_RANGE
     keep = (points[:, 0] >= r[0]) & (points[:, 0] <= r[3]) & (points[:, 1] >= r[1]) & (points[:, 1] <= r[4])
-    gen = Point2VoxelCPU3d(vsize_xyz=cfg.VOXEL_SIZE, coors_range_xyz=r, num_point_features=4,
-                           max_num_points_per_voxel=cfg.MAX_POINTS_PER_VOXEL, max_num_voxels=cfg.MAX_NUMBER_OF_VOXELS)
-    voxels, coords, num = (t.numpy().copy() for t in gen.point_to_voxel(tv.from_numpy(points[keep])))
+    inside = points[keep]
+    cells = np.floor((inside[:, :3] - np.float32(r[:3])) / np.float32(cfg.VOXEL_SIZE)).astype(np.int64)
+    grid = np.round((np.array(r[3:]) - r[:3]) / cfg.VOXEL_SIZE).astype(np.int64)
+    distinct = len(np.unique(cells[((cells >= 0) & (cells < grid)).all(1)], axis=0))
+    for _ in range(20):  # spconv 2.3.8's CPU voxelizer sometimes drops voxels (7914 / 7915 / 7916 of 7916
+        # distinct ones in three calls on the same points): keep a call that found every occupied cell
+        gen = Point2VoxelCPU3d(vsize_xyz=cfg.VOXEL_SIZE, coors_range_xyz=r, num_point_features=4,
+                               max_num_points_per_voxel=cfg.MAX_POINTS_PER_VOXEL, max_num_voxels=cfg.MAX_NUMBER_OF_VOXELS)
+        voxels, coords, num = (t.numpy().copy() for t in gen.point_to_voxel(tv.from_numpy(inside)))
+        if len(coords) == min(distinct, cfg.MAX_NUMBER_OF_VOXELS):
+            break
+    else:
+        raise RuntimeError(f"spconv's voxelizer never found all {distinct} occupied cells")
     return {"voxels": torch.from_numpy(voxels), "voxel_num_points": torch.from_numpy(num),
             "voxel_coords": torch.from_numpy(np.pad(coords, ((0, 0), (1, 0)))).int(), "batch_size": 1}
 

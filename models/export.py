@@ -167,7 +167,8 @@ def export_checkpoint(ckpt, out, expected_model: str | None = None) -> Path:
     export_onnx(model, out, {"sotif.profile": meta.get("profile", ""),
                              "sotif.data_hash": meta.get("data_hash", ""),
                              "sotif.config_hash": meta.get("config_hash", ""),
-                             "sotif.epoch": str(meta.get("epoch", ""))})
+                             "sotif.epoch": str(meta.get("epoch", "")),
+                             **({"sotif.published": json.dumps(meta["published"])} if "published" in meta else {})})
     return Path(out)
 
 

@@ -98,3 +98,38 @@ def test_tiny_and_compact_configs_have_no_new_fields():
             fields = dataclasses.asdict(cfgs[profile])
             assert "padded_slots" not in fields and "classes" not in fields["head"]
             assert "depth_pad" not in fields.get("backbone3d", {})
+
+
+class _HeadOnly(torch.nn.Module):
+    """points -> a BEV map scaled by their mean intensity -> the published head's Car boxes."""
+
+    architecture, two_stage, uses_camera = "head_only", False, False
+    input_names, output_names = ("points",), ("boxes", "scores")
+
+    def __init__(self, cfg: PublishedHeadConfig):
+        super().__init__()
+        from models.multiclass_head import MultiClassAnchorHead
+        self.cfg = dataclasses.replace(PP["tiny"], pc_range=RANGE)
+        torch.manual_seed(4)
+        self.base = torch.nn.Parameter(torch.randn(1, 8, 8, 12))
+        self.head = MultiClassAnchorHead(8, (8, 12), RANGE, cfg)
+        torch.nn.init.normal_(self.head.conv_cls.bias, 0.0, 1.0)
+        torch.nn.init.normal_(self.head.conv_box.weight, 0.0, 0.1)
+
+    def forward(self, points):
+        return self.head.detect(self.base * (1 + points[:, 3].mean()))
+
+
+def test_both_post_processings_export_and_match_torch(tmp_path):
+    from models.export import export_onnx, run_onnx
+    points = torch.rand(50, 4)
+    for cfg in (PublishedHeadConfig(nms_pre=100, max_out=20),
+                PublishedHeadConfig(nms_pre=60, max_out=15, post="mmdet3d", corners=False, dir_offset=MMDET3D_DIR_OFFSET)):
+        model = _HeadOnly(cfg).eval()
+        export_onnx(model, tmp_path / f"{cfg.post}.onnx", {})
+        with torch.no_grad():
+            want = model(points)
+        got = run_onnx(tmp_path / f"{cfg.post}.onnx", points.numpy())
+        assert len(want[0]) > 0 and got[0].shape == tuple(want[0].shape)
+        np.testing.assert_allclose(got[0], want[0].numpy(), atol=1e-4)
+        np.testing.assert_allclose(got[1], want[1].numpy(), atol=1e-5)
