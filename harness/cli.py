@@ -150,6 +150,17 @@ def cmd_export(a) -> int:
     return 0
 
 
+def cmd_import(a) -> int:
+    from harness.import_weights import import_checkpoint
+    from harness.protect import refuse_overwrite
+    out = _output_file(a.out)
+    refuse_overwrite(out, "a checkpoint", {"--checkpoint": a.checkpoint}, None, a.force)
+    info = import_checkpoint(Path(a.checkpoint), a.source, a.model, out)
+    print(f"{a.model} kitti checkpoint written to {out} ({info['config']}, classes {', '.join(info['classes'])}; "
+          "Car boxes are reported)")
+    return 0
+
+
 def cmd_predict(a) -> int:
     from harness.infer import predict
     summary = predict(Path(a.onnx), Path(a.data), Path(a.out), split=_split(a.split, Path(a.data)), runtime=a.runtime,
@@ -294,6 +305,33 @@ def _add_export(sub, quiet) -> None:
     s.set_defaults(func=cmd_export)
 
 
+IMPORT_EXAMPLE = """example:
+  sotif-bench import --from openpcdet --model pointpillars --checkpoint pointpillar_7728.pth --out pp.pt
+  sotif-bench export --model pointpillars --checkpoint pp.pt --out pointpillars.onnx
+
+published networks: --from openpcdet --model pointpillars (tools/cfgs/kitti_models/pointpillar.yaml),
+--from openpcdet --model second (second.yaml), --from mmdet3d --model dv_second
+(configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py)"""
+
+
+def _add_import(sub, quiet) -> None:
+    s = sub.add_parser("import", parents=[quiet], epilog=IMPORT_EXAMPLE,
+                       formatter_class=argparse.RawDescriptionHelpFormatter,
+                       help="turn a published OpenPCDet / MMDetection3D checkpoint into a kitti-profile checkpoint",
+                       description="Read a published checkpoint without running code from it (tensors only), map "
+                                   "every tensor onto the model's kitti profile (the published network) and write "
+                                   "a checkpoint that export turns into one ONNX file. A file of another model or "
+                                   "version, or with missing, extra or misshapen tensors, exits 2 listing them "
+                                   "and writes nothing.")
+    s.add_argument("--from", dest="source", required=True, choices=("openpcdet", "mmdet3d"),
+                   help="the code base that wrote the checkpoint")
+    s.add_argument("--model", required=True, help="pointpillars or second (openpcdet), dv_second (mmdet3d)")
+    s.add_argument("--checkpoint", required=True, help="the published .pth file")
+    s.add_argument("--out", required=True, type=_path, help="the checkpoint (.pt) to write")
+    s.add_argument("--force", action="store_true", help=FORCE_HELP)
+    s.set_defaults(func=cmd_import)
+
+
 def _add_predict(sub, quiet) -> None:
     s = sub.add_parser("predict", parents=[quiet], help="run an ONNX detector on a data set split, write KITTI results",
                        **command_text("predict"))
@@ -378,6 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub, quiet)
     _add_train(sub, quiet)
     _add_export(sub, quiet)
+    _add_import(sub, quiet)
     _add_predict(sub, quiet)
     _add_evaluate(sub, quiet)
     _add_run(sub, quiet)

@@ -7,12 +7,13 @@ of a voxel. Everything after the VFE is SECOND's network, so the two form a clea
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from torch import Tensor
 
 from models.anchor_head import HeadConfig
-from models.second import KITTI, SECOND, TINY, SECONDConfig
+from models.multiclass_head import MMDET3D_DIR_OFFSET, PublishedHeadConfig
+from models.second import PUBLISHED, SECOND, TINY, SECONDConfig
 from models.voxel_backbone import VoxelBackboneConfig
 from models.voxelize import Voxels, dynamic_voxelize
 
@@ -38,7 +39,14 @@ def _from_second(cfg: SECONDConfig) -> DVSECONDConfig:
                           cfg.upsample_strides, cfg.upsample_filters, cfg.head)
 
 
-CONFIGS = {"tiny": _from_second(TINY), "compact": DVSECONDConfig(), "kitti": _from_second(KITTI)}
+# MMDetection3D configs/_base_/models/second_hv_secfpn_kitti.py: classes in the data set config's
+# order, anchors at cell centres, its test_cfg (nms_pre 100, score_thr 0.1, nms_thr 0.01, max_num 50)
+MMDET3D_HEAD = PublishedHeadConfig(
+    classes=("Pedestrian", "Cyclist", "Car"), sizes=((0.8, 0.6, 1.73), (1.76, 0.6, 1.73), (3.9, 1.6, 1.56)),
+    bottoms=(-0.6, -0.6, -1.78), corners=False, dir_offset=MMDET3D_DIR_OFFSET, post="mmdet3d", nms_pre=100,
+    nms_iou=0.01, max_out=50)
+CONFIGS = {"tiny": _from_second(TINY), "compact": DVSECONDConfig(),
+           "kitti": replace(_from_second(PUBLISHED), head=MMDET3D_HEAD)}
 
 
 class DVSECOND(SECOND):

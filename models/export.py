@@ -225,7 +225,9 @@ def export_checkpoint(ckpt, out, expected_model: str | None = None, say=None) ->
     export_onnx(model, out, {"sotif.profile": meta.get("profile", ""),
                              "sotif.data_hash": meta.get("data_hash", ""),
                              "sotif.config_hash": meta.get("config_hash", ""),
-                             "sotif.epoch": str(meta.get("epoch", ""))}, say=say)
+                             "sotif.epoch": str(meta.get("epoch", "")),
+                             **({"sotif.published": json.dumps(meta["published"])} if "published" in meta else {})},
+                say=say)
     return Path(out)
 
 

@@ -6,11 +6,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from torch import Tensor
 
-from models.anchor_head import AnchorHead, HeadConfig
+from models.anchor_head import HeadConfig
 from models.backbone2d import BEVBackbone, scatter_to_bev
+from models.multiclass_head import PublishedHeadConfig, make_head
 from models.single_stage import AnchorDetector
 from models.vfe import PillarVFE
 from models.voxelize import Grid, hard_voxelize
@@ -30,6 +32,14 @@ class PointPillarsConfig:
     upsample_strides: tuple[float, ...] = (1, 2, 4)
     upsample_filters: tuple[int, ...] = (64, 64, 64)
     head: HeadConfig = HeadConfig(anchor_z=-1.0)
+    padded_slots: ClassVar[bool] = False  # see PublishedPointPillarsConfig (not a field)
+
+
+@dataclass(frozen=True)
+class PublishedPointPillarsConfig(PointPillarsConfig):
+    """OpenPCDet's network: a pillar with empty slots takes relu(BN(0)) into its max."""
+
+    padded_slots: bool = True
 
 
 CONFIGS = {
@@ -38,11 +48,11 @@ CONFIGS = {
                                strides=(2, 2), filters=(8, 16), upsample_strides=(1, 2),
                                upsample_filters=(8, 8), head=HeadConfig(anchor_z=-1.0, nms_pre=64)),
     "compact": PointPillarsConfig(),
-    "kitti": PointPillarsConfig(  # OpenPCDet tools/cfgs/kitti_models/pointpillar.yaml
+    "kitti": PublishedPointPillarsConfig(  # OpenPCDet tools/cfgs/kitti_models/pointpillar.yaml
         pc_range=(0.0, -39.68, -3.0, 69.12, 39.68, 1.0), voxel_size=(0.16, 0.16, 4.0), max_points=32,
         max_voxels=40000, pfn_channels=64, layers=(3, 5, 5), strides=(2, 2, 2), filters=(64, 128, 256),
         upsample_strides=(1, 2, 4), upsample_filters=(128, 128, 128),
-        head=HeadConfig(anchor_z=-1.0, nms_pre=4096, nms_iou=0.01, max_out=500)),
+        head=PublishedHeadConfig(nms_pre=4096, nms_iou=0.01, max_out=500)),
 }
 
 
@@ -53,12 +63,12 @@ class PointPillars(AnchorDetector):
         super().__init__()
         self.cfg = cfg
         self.grid = Grid(cfg.pc_range, cfg.voxel_size)
-        self.vfe = PillarVFE(self.grid, cfg.pfn_channels)
+        self.vfe = PillarVFE(self.grid, cfg.pfn_channels, cfg.padded_slots)
         self.backbone2d = BEVBackbone(cfg.pfn_channels, cfg.layers, cfg.strides, cfg.filters,
                                       cfg.upsample_strides, cfg.upsample_filters)
         _, h, w = self.grid.shape
         stride = round(cfg.strides[0] / cfg.upsample_strides[0])  # output stride of the backbone
-        self.head = AnchorHead(self.backbone2d.out_channels, (h // stride, w // stride), cfg.pc_range,
+        self.head = make_head(self.backbone2d.out_channels, (h // stride, w // stride), cfg.pc_range,
                                cfg.head)
 
     def bev(self, points: Tensor) -> Tensor:

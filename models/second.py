@@ -6,15 +6,16 @@
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from torch import Tensor
 
 from models.anchor_head import HeadConfig
+from models.multiclass_head import PublishedHeadConfig
 from models.single_stage import AnchorDetector, bev_stages
 from models.sparse import SparseTensor, height_compress
 from models.vfe import MeanVFE
-from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig
+from models.voxel_backbone import Backbone8xConfig, StageSpec, VoxelBackbone, VoxelBackboneConfig
 from models.voxelize import Grid, Voxels, hard_voxelize
 
 
@@ -47,7 +48,12 @@ KITTI = SECONDConfig(  # OpenPCDet tools/cfgs/kitti_models/second.yaml
                                         StageSpec(64, (2, 2, 2), (1, 1, 1), 2)), 128, (0, 0, 0)),
     layers=(5, 5), strides=(1, 2), filters=(128, 256), upsample_strides=(1, 2), upsample_filters=(256, 256),
     head=HeadConfig(anchor_z=-1.0, nms_pre=4096, nms_iou=0.01, max_out=500))
-CONFIGS = {"tiny": TINY, "compact": SECONDConfig(), "kitti": KITTI}
+# OpenPCDet's VoxelBackBone8x (= MMDetection3D's SparseEncoder): a 41-deep sparse input, the last
+# strided stage unpadded in z
+BACKBONE_8X = Backbone8xConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2), StageSpec(64, (2, 2, 2), (1, 1, 1), 2),
+                                    StageSpec(64, (2, 2, 2), (0, 1, 1), 2)), 128, (0, 0, 0))
+PUBLISHED = replace(KITTI, backbone3d=BACKBONE_8X, head=PublishedHeadConfig(nms_pre=4096, nms_iou=0.01, max_out=500))
+CONFIGS = {"tiny": TINY, "compact": SECONDConfig(), "kitti": PUBLISHED}
 
 
 class SECOND(AnchorDetector):

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from harness.types import Sample
 from models.anchor_head import AnchorHead, HeadConfig
+from models.multiclass_head import make_head
 from models.backbone2d import BEVBackbone
 from models.base import Detector, mean_over_frames
 from models.voxel_backbone import VoxelBackboneConfig, output_shape
@@ -55,4 +56,4 @@ def bev_stages(grid: Grid, backbone3d: VoxelBackboneConfig, pc_range, head: Head
     backbone2d = BEVBackbone(backbone3d.out_channels * d, layers, strides, filters, upsample_strides,
                              upsample_filters)
     up = upsample_strides[0] / strides[0]
-    return backbone2d, AnchorHead(backbone2d.out_channels, (round(h * up), round(w * up)), pc_range, head)
+    return backbone2d, make_head(backbone2d.out_channels, (round(h * up), round(w * up)), pc_range, head)

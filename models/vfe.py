@@ -141,13 +141,15 @@ class PillarVFE(nn.Module):
 
     Each point is decorated to 10 channels ``[x, y, z, i, x - x_m, y - y_m, z - z_m, x - x_c,
     y - y_c, z - z_c]`` (``_m``: mean of the pillar's points, ``_c``: the pillar centre), then
-    Linear -> BatchNorm -> ReLU, and max-pooled over the pillar's points.
+    Linear -> BatchNorm -> ReLU, and max-pooled over the pillar's points (with ``padded_slots``,
+    also over the empty slots of a pillar with fewer than ``max_points`` points, as OpenPCDet).
     """
 
-    def __init__(self, grid: Grid, out_channels: int = 64):
+    def __init__(self, grid: Grid, out_channels: int = 64, padded_slots: bool = False):
         super().__init__()
         self.grid = grid
         self.out_channels = out_channels
+        self.padded_slots = padded_slots
         self.linear = nn.Linear(10, out_channels, bias=False)
         self.norm = RowBatchNorm(out_channels, eps=1e-3, momentum=0.01)
 
@@ -157,4 +159,11 @@ class PillarVFE(nn.Module):
 
     def forward(self, voxels: Voxels) -> Tensor:
         feats = torch.relu(self.norm(self.linear(self.decorate(voxels))))  # (P, C)
-        return voxel_max_nonneg(feats, voxels)  # (V, C)
+        pooled = voxel_max_nonneg(feats, voxels)  # (V, C)
+        if not self.padded_slots:
+            return pooled
+        # OpenPCDet's PFN max-pools a zero-padded (V, max_points, 10) tensor: a pillar with an empty
+        # slot also takes relu(BN(Linear(0))) = relu(BN(0)) into its max
+        empty = torch.relu(self.norm(feats.new_zeros(1, feats.shape[1])))  # (1, C)
+        partial = scatter_count(voxels.point2voxel, voxels.num_voxels) < voxels.max_points  # (V,)
+        return torch.where(partial[:, None], torch.maximum(pooled, empty), pooled)

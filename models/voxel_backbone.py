@@ -9,6 +9,7 @@ stage outputs (finest first) so that two-stage models can pool from them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
 from torch import nn
 
@@ -31,6 +32,21 @@ class VoxelBackboneConfig:
                                      StageSpec(64, (2, 1, 1), (0, 1, 1), 1))
     out_channels: int = 64
     out_padding: tuple[int, int, int] = (0, 0, 0)  # of the (3, 1, 1) / (2, 1, 1) z-collapse
+    depth_pad: ClassVar[int] = 0  # empty cells above the voxel grid in the sparse input (not a field)
+
+    def input_shape(self, grid_shape) -> tuple[int, int, int]:
+        """(D, H, W) of the sparse input: the voxel grid with ``depth_pad`` more z cells."""
+        d, h, w = grid_shape
+        return d + self.depth_pad, h, w
+
+
+@dataclass(frozen=True)
+class Backbone8xConfig(VoxelBackboneConfig):
+    """OpenPCDet's ``VoxelBackBone8x`` / MMDetection3D's ``SparseEncoder``: the sparse input is one
+    z cell deeper than the voxel grid (``sparse_shape = grid_size[::-1] + [1, 0, 0]``: 41 cells
+    for 40), which moves the strided convs' windows over the real voxels."""
+
+    depth_pad: int = 1
 
 
 class VoxelBackbone(nn.Module):
@@ -48,9 +64,11 @@ class VoxelBackbone(nn.Module):
         self.out = conv_block(SparseConv3d(c, cfg.out_channels, (3, 1, 1), (2, 1, 1), cfg.out_padding),
                               cfg.out_channels)
         self.out_channels = cfg.out_channels
+        self.input_shape = cfg.input_shape
 
     def forward(self, x: SparseTensor) -> tuple[SparseTensor, list[SparseTensor]]:
-        x = self.stem(x)
+        """x on the voxel grid -> (output, [stem, stage outputs]) on the sparse input's grid."""
+        x = self.stem(SparseTensor(x.features, x.coords, self.input_shape(x.shape)))
         levels = [x]
         for stage in self.stages:
             x = stage(x)
@@ -60,7 +78,7 @@ class VoxelBackbone(nn.Module):
 
 def output_shape(grid_shape, cfg: VoxelBackboneConfig) -> tuple[int, int, int]:
     """(D, H, W) after the stages and the z-collapse."""
-    shape = tuple(grid_shape)
+    shape = cfg.input_shape(grid_shape)
     for spec in cfg.stages:
         shape = out_shape(shape, 3, spec.stride, spec.padding)
     return out_shape(shape, (3, 1, 1), (2, 1, 1), cfg.out_padding)
