@@ -67,8 +67,19 @@ def cache_key(model: torch.nn.Module, opset: int) -> str | None:
     source = Path(inspect.getsourcefile(cls)).read_bytes()
     ident = {"format": FORMAT, "code": graph_code(), "class": f"{cls.__module__}.{cls.__qualname__}",
              "class_file": hashlib.sha256(source).hexdigest(), "config": dataclasses.asdict(cfg),
-             "versions": _versions(), "opset": opset}
+             "structure": _structure(model), "versions": _versions(), "opset": opset}
     return hashlib.sha256(json.dumps(ident, sort_keys=True, default=repr).encode()).hexdigest()[:32]
+
+
+def _structure(model: torch.nn.Module) -> dict:
+    """What else shapes the graph besides the model's own config: the module tree as printed, every
+    submodule's dataclass settings and the names, shapes and dtypes of the weights (two models of one
+    class whose heads are configured apart must never share an entry)."""
+    settings = {name: dataclasses.asdict(value) for mod_name, mod in model.named_modules()
+                for attr, value in vars(mod).items() if dataclasses.is_dataclass(value) and not isinstance(value, type)
+                for name in [f"{mod_name}.{attr}"]}
+    tensors = [(k, tuple(v.shape), str(v.dtype)) for k, v in model.state_dict().items()]
+    return {"modules": repr(model), "settings": settings, "tensors": tensors}
 
 
 def cache_dir() -> Path | None:

@@ -244,3 +244,28 @@ def test_cached_export_of_a_model_equals_its_fresh_export(tmp_path, name):
     assert "from the cache" in _export_lines(model(1), tmp_path / "warm.onnx", cache)[0]
     _export_lines(model(1), tmp_path / "fresh.onnx", "off")
     assert (tmp_path / "warm.onnx").read_bytes() == (tmp_path / "fresh.onnx").read_bytes()
+
+
+def test_models_of_one_class_and_config_whose_parts_differ_never_share_a_graph_entry():
+    import dataclasses as dc
+
+    from models.graph_cache import cache_key
+
+    @dc.dataclass(frozen=True)
+    class Part:
+        post: str
+
+    class Inner(torch.nn.Module):
+        def __init__(self, post):
+            super().__init__()
+            self.setting = Part(post)
+            self.lin = torch.nn.Linear(2, 2)
+
+    class Outer(torch.nn.Module):
+        def __init__(self, post):
+            super().__init__()
+            self.cfg = Part("same")
+            self.inner = Inner(post)
+
+    a, b = cache_key(Outer("openpcdet"), 18), cache_key(Outer("mmdet3d"), 18)
+    assert a and b and a != b and cache_key(Outer("openpcdet"), 18) == a
