@@ -26,6 +26,11 @@ COMMANDS = {  # name: (what it does, examples)
                "(inputs points [N, 4]; outputs boxes, scores; see the README). Models: {models}.",
                ["sotif-bench export --model pointpillars --checkpoint runs/pointpillars/checkpoint.pt "
                 "--out pointpillars.onnx"]),
+    "import": ("Import a published checkpoint (OpenPCDet's PointPillars or SECOND, MMDetection3D's DV-SECOND, "
+               "KITTI 3-class) as our kitti-profile checkpoint, read without running code from it; every tensor is "
+               "mapped or the file is refused, naming what is missing, extra or misshapen. Then export it as usual.",
+               ["sotif-bench import --from openpcdet --model second --checkpoint second_7862.pth --out second.pt",
+                "sotif-bench import --from mmdet3d --model dv_second --checkpoint dv_second_kitti.pth --out dv.pt"]),
     "predict": ("Run an ONNX detector (one of ours, or your own that follows the contract) on a split of a KITTI "
                 "data set with onnxruntime or OpenVINO, and write one KITTI result file per frame plus "
                 "predict.json (latency). A stopped predict resumes.",

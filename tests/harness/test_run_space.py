@@ -17,8 +17,9 @@ HAS_INSTANCES = "instances" in inspect.signature(simulator.generate).parameters
 
 
 def test_profiles_set_instance_counts():
-    assert (PROFILES["quick"].sotif_instances, PROFILES["quick"].sweep_instances) == (2, 3)
-    assert (PROFILES["default"].sotif_instances, PROFILES["default"].sweep_instances) == (6, 60)
+    # quick: the study's 42-frame set and a small sweep; default: the counts its cost was chosen for
+    assert (PROFILES["quick"].sotif_instances, PROFILES["quick"].sweep_instances) == (None, 3)
+    assert (PROFILES["default"].sotif_instances, PROFILES["default"].sweep_instances) == (2, 12)
     assert TINY.sotif_instances is None and TINY.sweep_instances is None  # the study's set, no sweep
 
 
@@ -41,10 +42,11 @@ def test_the_sweep_set_is_simulated_with_its_instances_and_keyed_by_them(tmp_pat
     run_mod._simulate(stages, cfg, tmp_path / "data", "sotif")
     sweep, sotif = calls
     assert sweep["preset"] == "sweep" and sweep["instances"] == 3 and sweep["frames"] is None and sweep["seed"] == 2004
-    assert sotif["preset"] == "sotif" and sotif["instances"] == 2 and sotif["frames"] == 21 and sotif["seed"] == 4
-    assert sweep["force"] is True
+    # an instance set is not capped by frames; with the run's own val set it is all test (val_share 0)
+    assert sotif["preset"] == "sotif" and sotif["instances"] == 2 and sotif["frames"] is None and sotif["seed"] == 4
+    assert sweep["force"] is True and sotif.get("val_share") == sweep.get("val_share") == (0.0 if cfg.val_frames else None)
     key = {"preset": "sweep", "frames": None, "seed": 2004, "lidar": "physics", "generator": GENERATOR_VERSION,
-           "instances": 3}
+           "instances": 3, **({"val_share": 0.0} if cfg.val_frames else {})}
     assert stages.record("simulate_sweep")["key"] == config_hash(key)
     run_mod._simulate(stages, replace(cfg, sweep_instances=4), tmp_path / "data", "sweep")
     assert len(calls) == 3 and calls[-1]["instances"] == 4  # another instance count simulates again
@@ -63,7 +65,7 @@ def test_the_studys_set_keeps_its_key_and_call(tmp_path, monkeypatch):
 @pytest.mark.skipif(not HAS_INSTANCES, reason="simulator.generate has no instances= yet")
 def test_a_run_with_instances_and_a_sweep_set(tmp_path):
     out = run_mod.run(models=["pointpillars"], out=tmp_path / "run", progress=False,
-                      config=replace(TINY, sotif_instances=1, sweep_instances=2))
+                      config=replace(TINY, sotif_instances=1, sweep_instances=3))
     summary = json.loads((out / "results.json").read_text())
     model = summary["models"]["pointpillars"]
     assert set(model["sotif_space"]) == {"sotif", "sweep"} and set(model["calibration"]) == {"0.7", "0.5"}
