@@ -25,18 +25,8 @@ GROUP_COLUMN = "precipitation_class"
 
 def match_3d(boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, iou_min: float) -> np.ndarray:
     """(D,) bool: detection i (LiDAR box (D, 7)) matched a ground-truth box (G, 7) at 3D IoU >= iou_min,
-    greedy by descending score, each ground truth taken once."""
-    matched = np.zeros(len(boxes), dtype=bool)
-    if len(boxes) == 0 or len(gt) == 0:
-        return matched
-    iou = iou_3d(boxes, gt)  # (D, G)
-    free = np.ones(len(gt), dtype=bool)
-    for i in np.argsort(-np.asarray(scores), kind="stable"):
-        cand = np.where(free, iou[i], -1.0)
-        j = int(np.argmax(cand))
-        if cand[j] >= iou_min:
-            matched[i], free[j] = True, False
-    return matched
+    greedy by descending score, each ground truth taken once (``harness.sotif.greedy_match`` in 3D)."""
+    return sotif.greedy_match(boxes, scores, gt, iou_min, overlap=iou_3d)
 
 
 def reliability(scores, correct, n_bins: int = N_BINS) -> dict:

@@ -40,8 +40,10 @@ META_COLUMNS = ("frame_id", "weather", "scenario_time_s", "lane_change_time_s", 
 
 
 # ----------------------------------------------------------------------------- pure functions
-def greedy_match(boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, iou_min: float = IOU_BEV_MIN) -> np.ndarray:
-    """(D,) bool: detection i (LiDAR box (D, 7)) matched a ground-truth box (G, 7) at BEV IoU >= iou_min.
+def greedy_match(boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, iou_min: float = IOU_BEV_MIN,
+                 overlap=iou_bev) -> np.ndarray:
+    """(D,) bool: detection i (LiDAR box (D, 7)) matched a ground-truth box (G, 7) at IoU >= iou_min, the IoU
+    given by ``overlap`` ((D, 7), (G, 7) -> (D, G); BEV by default, ``harness.boxes.iou_3d`` for 3D).
 
     Detections are taken by descending score; each takes its best still-free ground truth. Since
     higher scores go first, keeping only detections above any threshold leaves their matches unchanged.
@@ -49,7 +51,7 @@ def greedy_match(boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, iou_min:
     matched = np.zeros(len(boxes), dtype=bool)
     if len(boxes) == 0 or len(gt) == 0:
         return matched
-    iou = iou_bev(boxes, gt)  # (D, G)
+    iou = overlap(boxes, gt)  # (D, G)
     free = np.ones(len(gt), dtype=bool)
     for i in np.argsort(-np.asarray(scores), kind="stable"):
         cand = np.where(free, iou[i], -1.0)
