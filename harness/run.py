@@ -105,11 +105,12 @@ def _model_of(tag: str) -> str:
 
 
 PROFILES = {
+    # default: 30 sweep instances, 10 per weather axis, so that a condition bin can hold >= 5 instances
     # quick: the study's SOTIF set cut to 42 frames and a 3-instance sweep set (smoke run, numbers mean nothing)
     "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3,
                        sweep_instances=3, val_frames=10),
     "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20,
-                         sotif_instances=2, sweep_instances=12, val_frames=300),
+                         sotif_instances=2, sweep_instances=30, val_frames=300),
     # the references train every model from nothing: so does the full profile
     "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1,
                       warm_start=False),

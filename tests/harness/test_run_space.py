@@ -19,7 +19,7 @@ HAS_INSTANCES = "instances" in inspect.signature(simulator.generate).parameters
 def test_profiles_set_instance_counts():
     # quick: the study's 42-frame set and a small sweep; default: the counts its cost was chosen for
     assert (PROFILES["quick"].sotif_instances, PROFILES["quick"].sweep_instances) == (None, 3)
-    assert (PROFILES["default"].sotif_instances, PROFILES["default"].sweep_instances) == (2, 12)
+    assert (PROFILES["default"].sotif_instances, PROFILES["default"].sweep_instances) == (2, 30)
     assert TINY.sotif_instances is None and TINY.sweep_instances is None  # the study's set, no sweep
 
 
