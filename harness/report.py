@@ -210,10 +210,10 @@ def _space_section(run: tables.Run, t: dict) -> list[Section]:
     """"SOTIF over the scenario space" (``harness.report_space``), when the run has its results."""
     if "sotif_instances" not in t:
         return []
-    rates = t.get("sotif_pass_rates", pd.DataFrame())
-    weather = rates[rates["column"] == "weather"].drop(columns="column") if not rates.empty else rates
+    matrix = report_space.rate_matrix(t.get("sotif_pass_rates", pd.DataFrame()))
     return [Section("sotif_space", "SOTIF over the scenario space", report_space.section_intro(run.summary, t),
-                    [("Pass rate per weather (95% Wilson interval over instances)", weather, 2),
+                    [("Instances passed of the feasible ones, per condition (intervals: tables/sotif_pass_rates.csv)",
+                      matrix, 2),
                      ("Triggering conditions: the swept condition bins with the lowest pass rate",
                       t.get("triggering_conditions", pd.DataFrame()), 2),
                      ("Expected calibration error per weather class", t.get("calibration", pd.DataFrame()), 3)],

@@ -10,12 +10,14 @@ lowest pass rate), ``sotif_boundary`` (per model and map the slow-car frames and
 """
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
 from harness import figures
-from harness.sotif_space import CONDITION_COLUMNS, MIN_INSTANCES, boundary_grid, pass_rates
+from harness.sotif_space import AXIS_COLUMNS, CONDITION_COLUMNS, MIN_INSTANCES, boundary_grid, pass_rates
 
 N_TRIGGERING = 5  # bins per model in the triggering-conditions table
 DISTANCE_EDGES = np.arange(0.0, 110.0, 10.0)  # m, the boundary maps' distance bins
@@ -24,9 +26,10 @@ BOUNDARY_MAPS = {  # map name -> (frame column, bin edges, axis label)
     "fog": ("fog_mor_m", [0.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, np.inf], "fog visibility MOR (m); last: none"),
     "reflectance": ("sc_slow_reflectance", [0.0, 0.05, 0.1, 0.2, 0.4, 0.6, 1.0001], "slow car reflectance at 905 nm"),
 }
-HOW_TO_READ = ("Read the pass rates with their intervals and instance counts: a bin with fewer than "
-               f"{MIN_INSTANCES} instances is too few to judge; the maps show where each detector stops finding "
-               "the slow car (dark cells), and the triggering conditions list where it fails most.")
+HOW_TO_READ = ("Read down a model's column: where its passes fall from the clear rows to the heavy rain or thick "
+               f"fog bins, it stops being safe (a bin with fewer than {MIN_INSTANCES} feasible instances is too few "
+               "to judge); the maps show where each detector stops finding the slow car (dark cells), and the "
+               "triggering conditions list where it fails most.")
 
 
 def _views(summary: dict):
@@ -41,15 +44,52 @@ def instances_table(summary: dict) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _axis_rows(g: pd.DataFrame, column: str) -> pd.DataFrame:
+    """A sweep set's instances of the axis that sweeps ``column`` (the others hold it at its base value)."""
+    axis = next((a for a, c in AXIS_COLUMNS.items() if c == column), None)
+    if axis is None or "sweep_axis" not in g.columns or g["sweep_axis"].isna().all():
+        return g
+    return g[g["sweep_axis"] == axis]
+
+
 def pass_rate_table(instances: pd.DataFrame) -> pd.DataFrame:
-    """Pass rates per model, set and condition (the weather and every swept condition column present)."""
+    """Pass rates per model, set and condition (the weather and every swept condition column present),
+    over feasible instances (``harness.sotif_space.pass_rates``); a sweep axis's column over that axis's
+    instances."""
     if instances.empty:
         return pd.DataFrame()
     judged = instances[instances["pass"].notna()]
-    parts = [pass_rates(g, c).assign(model=m, set=s) for (m, s), g in judged.groupby(["model", "set"], sort=False)
+    parts = [pass_rates(_axis_rows(g, c), c).assign(model=m, set=s)
+             for (m, s), g in judged.groupby(["model", "set"], sort=False)
              for c in ("weather", *CONDITION_COLUMNS) if c in g.columns]
     df = pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
     return df[["model", "set", *[c for c in df.columns if c not in ("model", "set")]]] if not df.empty else df
+
+
+RATE_ROWS = {"sotif": ("weather", "precipitation_class"), "sweep": ("weather", *AXIS_COLUMNS.values())}
+COLUMN_LABELS = {"weather": "all instances", "precipitation_class": "precipitation", "rain_rate_mmh": "rain (mm/h)",
+                 "fog_mor_m": "fog visibility (m)", "road_water": "road water (share)"}
+
+
+def rate_matrix(rates: pd.DataFrame) -> pd.DataFrame:
+    """The report's pass-rate table: one row per set and condition bin (the SOTIF set by precipitation
+    class, the sweep set whole and by each axis), one column per model, cells "passed / feasible (rate)";
+    ``n_infeasible`` counts the instances no detector could pass. The presets one by one (two instances
+    each in the default run) stay in tables/sotif_pass_rates.csv."""
+    if rates.empty:
+        return pd.DataFrame()
+    keep = pd.concat([rates[(rates["set"] == s) & rates["column"].isin(cols)] for s, cols in RATE_ROWS.items()])
+    keep = keep[~((keep["set"] == "sotif") & (keep["column"] == "weather"))]
+    if keep.empty:
+        return pd.DataFrame()
+    keep = keep.assign(cell=[f"{int(r.n_pass)}/{int(r.n)}" + (f" ({r.rate:.2f})" if r.n else "") for r in keep.itertuples()],
+                       condition=[f"{COLUMN_LABELS.get(c, c)}: {b}" if c != "weather" else "all instances"
+                                  for c, b in zip(keep["column"], keep["bin"])])
+    index = ["set", "condition"]
+    wide = keep.pivot_table(index=index, columns="model", values="cell", aggfunc="first", sort=False)
+    infeasible = keep.groupby(index, sort=False)["n_infeasible"].max()
+    wide = wide[[m for m in dict.fromkeys(keep["model"])]].assign(n_infeasible=infeasible)
+    return wide.reset_index()
 
 
 def triggering_table(rates: pd.DataFrame, per_model: int = N_TRIGGERING) -> pd.DataFrame:
@@ -200,8 +240,18 @@ def ci_method(results: dict) -> str:
     for res in results.values():
         for row in ((res.get("groups_by") or {}).get("weather") or {}).get("rows", {}).values():
             if row.get("ci_method"):
-                return row["ci_method"]
+                return row["ci_method"] + _few_clusters(row["ci_method"])
     return "bootstrap over frames"
+
+
+def _few_clusters(method: str) -> str:
+    """A caveat when an interval over instances rests on fewer than ``MIN_INSTANCES`` of them."""
+    found = re.search(r"over instances \((\d+) instances", method)
+    if not found or int(found.group(1)) >= MIN_INSTANCES:
+        return ""
+    n = int(found.group(1))
+    return (f"; with {n} instances per preset such an interval is the spread of {n} drives, not a 95% interval: "
+            "compare presets by the pass rates and rain classes below, which pool instances")
 
 
 def section_intro(summary: dict, t: dict) -> str:
@@ -214,6 +264,11 @@ def section_intro(summary: dict, t: dict) -> str:
             "model's operating threshold, BEV IoU >= 0.5). The braking margin is the gap left at that frame, had "
             "the ego held its closing speed from the lane change, minus the stopping distance with the model's "
             "onnxruntime latency (p50) added to the reaction time; an instance passes when the margin is >= 0. "
-            "Pass rates carry a 95% Wilson score interval over instances, and n is the number of instances behind "
-            f"each rate; a bin with fewer than {MIN_INSTANCES} is too few to judge. Calibration: expected "
+            "An instance is feasible when an ideal detector (a hit in every frame where the slow car is labelled, "
+            "no latency) passes it; infeasible ones leave no room to brake whatever the detector, so rates count "
+            "feasible instances only and the table names how many were left out. The sweep set moves one weather "
+            "axis per instance (rain rate, fog visibility or road water) and draws the scenario parameters too; "
+            f"each axis is split into bins of at least {MIN_INSTANCES} instances. Pass rates carry a 95% Wilson "
+            "score interval over instances (tables/sotif_pass_rates.csv, with every preset and scenario parameter); "
+            f"a bin with fewer than {MIN_INSTANCES} is too few to judge. Calibration: expected "
             "calibration error of the scores against a match at 3D IoU 0.7 / 0.5, 10 equal-width bins.")

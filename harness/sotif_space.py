@@ -15,7 +15,11 @@ Per instance, over its frames at or after the fast car's lane change (time order
 - the *braking margin* is the gap left at confirmation if the ego had held its closing speed dv0
   from the first frame after the lane change (``harness.sotif.gap_without_braking``) minus
   ``stopping_distance(dv0)`` with the model's measured onnxruntime latency (p50) added to the
-  reaction time. The instance passes when the margin is >= 0; never confirmed = fail.
+  reaction time. The instance passes when the margin is >= 0; never confirmed = fail;
+- the instance is *feasible* when an ideal detector passes it: one that hits every frame in which the
+  slow car is labelled and has no latency (``ideal_margin_m`` >= 0). An infeasible instance (the
+  scenario leaves no room to brake whatever the detector) says nothing about the detector, so pass
+  rates count feasible instances only and name how many were left out.
 
 Pass rates over instances carry a 95 % Wilson score interval. Pure functions first, then the driver.
 """
@@ -28,7 +32,7 @@ import pandas as pd
 from scipy.stats import binomtest
 
 from harness import sotif
-from harness.conditions import condition_labels
+from harness.conditions import N_BINS, condition_labels
 from harness.kitti import KittiError
 
 CONFIRM_K, CONFIRM_N = 3, 5  # hits within consecutive frames that confirm the slow car
@@ -36,6 +40,7 @@ MIN_INSTANCES = 5  # fewer instances in a condition bin: too few to judge
 CONDITION_COLUMNS = ("rain_rate_mmh", "fog_mor_m", "road_water", "sc_slow_reflectance", "sc_ego_speed_kmh",
                      "sc_slow_speed_kmh", "sc_cutout_gap_m", "sc_lane_change_s", "sc_lateral_offset_m",
                      "sc_slow_body", "sc_slow_paint", "sc_fast_body", "precipitation_class")
+AXIS_COLUMNS = {"rain": "rain_rate_mmh", "fog": "fog_mor_m", "water": "road_water"}  # sweep axis -> its column
 FRAME_COLUMNS = ("rain_rate_mmh", "fog_mor_m", "sc_slow_reflectance", "precipitation_class")  # kept per frame
 
 
@@ -78,15 +83,31 @@ def rate_row(passed) -> dict:
 
 
 def pass_rates(instances: pd.DataFrame, column: str) -> pd.DataFrame:
-    """Pass rate with its Wilson interval per value (or bin, ``harness.conditions``) of ``column``."""
-    cols = ["column", "bin", "n", "n_pass", "rate", "lo", "hi", "too_few"]
+    """Pass rate with its Wilson interval per value (or bin, ``harness.conditions``) of ``column``, over the
+    feasible instances when the rows say which are (``n_infeasible``: those left out). A numeric column gets
+    as many quantile bins as keep ``MIN_INSTANCES`` instances in each (at most ``conditions.N_BINS``); a
+    column with one value in these instances tells nothing and gives no rows."""
+    cols = ["column", "bin", "n", "n_pass", "rate", "lo", "hi", "too_few", "n_infeasible"]
     if column not in instances.columns or instances.empty or instances[column].isna().all():
         return pd.DataFrame(columns=cols)
     df = instances[instances[column].notna()]
-    labels = condition_labels(df[column])
-    rows = [{"column": column, "bin": b, **rate_row(df.loc[labels == b, "pass"].astype(bool))}
-            for b in pd.unique(labels)]
+    if pd.api.types.is_numeric_dtype(df[column]) and df[column].nunique() < 2 and len(df) > 1:
+        return pd.DataFrame(columns=cols)
+    bins = max(1, min(N_BINS, len(df) // MIN_INSTANCES))
+    labels = condition_labels(df[column], max_levels=bins, n_bins=bins)
+    feasible = df["feasible"].fillna(True).astype(bool) if "feasible" in df.columns else pd.Series(True, df.index)
+    rows = [{"column": column, "bin": b,
+             **rate_row(df.loc[(labels == b) & feasible, "pass"].astype(bool)),
+             "n_infeasible": int(((labels == b) & ~feasible).sum())}
+            for b in _ordered(labels, df[column])]
     return pd.DataFrame(rows, columns=cols)
+
+
+def _ordered(labels: pd.Series, values: pd.Series) -> list:
+    """The bins of a numeric column from its lowest values up; any other column's in order of appearance."""
+    if not pd.api.types.is_numeric_dtype(values) or pd.api.types.is_bool_dtype(values):
+        return list(pd.unique(labels))
+    return list(values.groupby(labels).min().sort_values(kind="stable").index)
 
 
 def boundary_grid(frames: pd.DataFrame, y: str, x_edges, y_edges) -> tuple[np.ndarray, np.ndarray]:
@@ -116,7 +137,8 @@ def _instance(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, thres
            "instance": int(first["instance"]) if "instance" in frames.columns else 0,
            **{c: first[c] for c in (*CONDITION_COLUMNS, "sweep_axis") if c in frames.columns},
            "n_frames": 0, "detected": False, "confirmed": False, "time_after_lane_change_s": None,
-           "gap_m": None, "closing_speed_mps": None, "stopping_distance_m": None, "margin_m": None, "pass": None}
+           "gap_m": None, "closing_speed_mps": None, "stopping_distance_m": None, "margin_m": None, "pass": None,
+           "ideal_margin_m": None, "feasible": None}
     t_lc = float(first["lane_change_time_s"])
     after = frames[(frames["scenario_time_s"] >= t_lc - 1e-6) & (frames["slow_car_label_index"] >= 0)]
     if np.isnan(t_lc) or after.empty:
@@ -125,6 +147,10 @@ def _instance(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, thres
     ref = after.iloc[0]
     dv0, d0 = float(ref["ego_speed_mps"] - ref["slow_car_speed_mps"]), sotif.rear_distance(slow_boxes[0])
     t0 = float(ref["scenario_time_s"])
+    ideal = confirmed_index(np.ones(len(after), bool), k, n)  # every labelled frame a hit
+    if ideal is not None:
+        row["ideal_margin_m"] = braking_margin(d0, dv0, float(after.iloc[ideal]["scenario_time_s"]) - t0, 0.0)
+    row["feasible"] = row["ideal_margin_m"] is not None and bool(row["ideal_margin_m"] >= 0)
     row.update(n_frames=len(after), detected=bool(any(hits)), closing_speed_mps=dv0,
                stopping_distance_m=sotif.stopping_distance(dv0, t_react=sotif.T_REACT_S + latency_s), **{"pass": False})
     i = confirmed_index(hits, k, n)

@@ -59,7 +59,7 @@ def test_tables_and_section(space_run):
     inst = pd.DataFrame(doc["models"]["alpha"]["sotif_space"]["sweep"]["instances"])
     row = sweep[sweep.column == "weather"].iloc[0]
     assert row["n"] == 12 and row["n_pass"] == inst["pass"].sum() and not row["too_few"]
-    assert (sweep[sweep.column == "rain_rate_mmh"]["n"] == 3).all()  # 12 values: four quantile bins
+    assert (sweep[sweep.column == "rain_rate_mmh"]["n"] == 6).all()  # 12 values: two bins of >= 5 instances
     trig = pd.read_csv(root / "tables" / "triggering_conditions.csv")
     assert len(trig[trig.model == "alpha"]) == report_space.N_TRIGGERING and "weather" not in set(trig["column"])
     judged = trig[(trig.model == "alpha") & ~trig.too_few]
@@ -83,3 +83,11 @@ def test_a_run_without_scenario_space_writes_no_new_files(tmp_path):
     report.render(root)
     assert not (root / "tables" / "sotif_instances.csv").exists()
     assert "scenario space" not in (root / "report.md").read_text()
+
+
+def test_an_interval_over_few_instances_says_so():
+    rows = lambda m: {"a": {"groups_by": {"weather": {"rows": {"ClearNoon": {"ci_method": m}}}}}}
+    few = report_space.ci_method(rows("bootstrap over instances (2 instances, 200 resamples)"))
+    assert "spread of 2 drives, not a 95% interval" in few
+    assert report_space.ci_method(rows("bootstrap over instances (6 instances, 200 resamples)")).endswith("resamples)")
+    assert report_space.ci_method(rows("bootstrap over frames (200 resamples)")) == "bootstrap over frames (200 resamples)"

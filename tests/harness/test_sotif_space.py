@@ -89,6 +89,11 @@ def test_instance_view_hand_worked(tmp_path):
     assert a["margin_m"] == pytest.approx(19.0, abs=0.02) and a["pass"] is True and a["n_frames"] == 10
     assert b["margin_m"] == pytest.approx(-114.0, abs=0.02) and b["pass"] is False
     assert c["detected"] and not c["confirmed"] and c["margin_m"] is None and c["pass"] is False
+    # an ideal detector confirms at the third frame after the lane change (0.2 s) with no latency:
+    # a: 50 - 10 * 0.2 = 48 m left against 10 * 1 + 10^2 / 8 + 2 = 24.5 m; b: 44 m against 30 + 112.5 + 2 m
+    assert a["ideal_margin_m"] == pytest.approx(23.5, abs=0.02) and a["feasible"] is True
+    assert b["ideal_margin_m"] == pytest.approx(-100.5, abs=0.02) and b["feasible"] is False
+    assert c["feasible"] is True  # the scenario leaves room: the detector missed it
     assert a["sc_slow_reflectance"] == pytest.approx(0.1) and b["sc_slow_reflectance"] == pytest.approx(0.2)
     frames = pd.DataFrame(view["frames"])
     assert len(frames) == 30 and frames["hit"].sum() == 5 + 5 + 3  # only frames at or after the lane change
@@ -136,6 +141,19 @@ def test_pass_rates_per_bin_mark_too_few():
     assert (rates.loc["A", "lo"], rates.loc["A", "hi"]) == pytest.approx(wilson_reference(5, 6))
     assert rates.loc["B", "rate"] == 0.0 and rates.loc["B", "too_few"]
     assert sotif_space.pass_rates(inst, "fog_mor_m").empty  # a column the data set does not have
+    assert sotif_space.pass_rates(inst.assign(fog_mor_m=0.0), "fog_mor_m").empty  # one value tells nothing
+
+
+def test_pass_rates_count_feasible_instances_and_keep_five_per_bin():
+    rng = np.random.default_rng(3)
+    inst = pd.DataFrame({"rain_rate_mmh": rng.uniform(0, 100, 23), "pass": rng.uniform(size=23) < 0.5,
+                         "feasible": rng.uniform(size=23) < 0.8})
+    rates = sotif_space.pass_rates(inst, "rain_rate_mmh")
+    assert len(rates) == 4 and (rates["n"] + rates["n_infeasible"] >= 5).all()  # 23 // 5 = 4 bins
+    assert rates["bin"].iloc[0].startswith("[" + f"{inst.rain_rate_mmh.min():.3g}")  # from the lowest up
+    assert rates["n_infeasible"].sum() == (~inst.feasible).sum()
+    assert rates["n_pass"].sum() == (inst["pass"] & inst.feasible).sum()  # only feasible instances count
+    assert len(sotif_space.pass_rates(inst.iloc[:12], "rain_rate_mmh")) == 2  # 12 instances: two bins of 6
 
 
 def test_boundary_grid_against_a_loop():
