@@ -1,0 +1,62 @@
+"""The exported ONNX files of the imported published networks against the references' golden boxes.
+
+    python -m benchmarks.golden_onnx [--models pointpillars,second] [--keep DIR]
+
+For each golden file of ``tests/golden`` (``benchmarks/golden_published.py``): rebuilds the reference
+checkpoint from the seeded rule, imports it (``sotif-bench import``'s code), exports it
+(``sotif-bench export``'s code, one self-contained file), runs the file with onnxruntime on the golden
+frame and prints the export time, the number of Car boxes of both and the largest differences of
+the box values (yaw modulo 2 pi) and scores, matched in score order. Exits 1 when a count differs
+or a box value is off by more than 1e-3 or a score by more than 1e-4 (the done-when of the import).
+The kitti exports trace for minutes on a loaded 2-core machine, so CI checks eager torch only
+(``tests/models/test_published_golden.py``) and this script the ONNX files.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+from harness.import_weights import import_checkpoint
+from models.export import export_checkpoint, run_onnx
+from tests.models.test_published_golden import car_boxes, differences, load, reference_file
+
+BOX_TOL, SCORE_TOL = 1e-3, 1e-4
+
+
+def check(source: str, model: str, work: Path) -> bool:
+    g = load(source, model)
+    reference_file(g, work / f"{model}_ref.pth")
+    import_checkpoint(work / f"{model}_ref.pth", source, model, work / f"{model}.pt")
+    start = time.perf_counter()
+    export_checkpoint(work / f"{model}.pt", work / f"{model}.onnx", expected_model=model)
+    seconds = time.perf_counter() - start
+    boxes, scores = run_onnx(work / f"{model}.onnx", g["points"])[:2]  # (N, 7) boxes, (N,) Car scores
+    want_boxes, want_scores = car_boxes(g)
+    line = f"{source} {model}: export {seconds:.0f} s; Car boxes ONNX {len(boxes)}, reference {len(want_boxes)}"
+    if len(boxes) != len(want_boxes):
+        print(line + ": counts differ")
+        return False
+    diff = differences(boxes, scores, want_boxes, want_scores)
+    print(line + f"; max |box value difference| {diff[0]:.2e} (tolerance {BOX_TOL:g}), "
+          f"max |score difference| {diff[1]:.2e} (tolerance {SCORE_TOL:g})")
+    return diff[0] <= BOX_TOL and diff[1] <= SCORE_TOL
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--models", default="pointpillars,second")
+    p.add_argument("--keep", type=Path, help="keep the checkpoints and ONNX files in this folder")
+    a = p.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = a.keep or Path(tmp)
+        work.mkdir(parents=True, exist_ok=True)
+        ok = [check("openpcdet", model, work) for model in a.models.split(",")]
+    return 0 if all(ok) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
