@@ -1,0 +1,50 @@
+"""The imported DV-SECOND against golden data of MMDetection3D 1.4's own code
+(``benchmarks/golden_mmdet3d.py``: its registry-built detector on CPU, random weights by the
+seeded rule in its spconv 2.x checkpoint layout, one frame through its test step). The
+checkpoint is rebuilt here as MMDetection3D saves it (``meta`` and a ``state_dict`` whose
+``_metadata`` marks the sparse convs version 2), imported through ``sotif-bench import``'s code
+and run: the bird's-eye map, the class logits and the final Car boxes must match."""
+import collections
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from benchmarks.golden_weights import fill
+from harness.import_weights import import_checkpoint
+from models import zoo
+from tests.models.test_published_golden import assert_same_boxes, car_boxes, load
+
+GOLDEN = Path(__file__).parents[1] / "golden"
+
+
+def reference_file(g: dict, path: Path) -> None:
+    """The golden weights as an MMDetection3D 1.4 checkpoint (mmengine's save: meta, state_dict)."""
+    state = collections.OrderedDict((n, torch.from_numpy(v)) for n, v in
+                                    fill([str(n) for n in g["names"]], g["shapes"], int(g["seed"]),
+                                         float(g["cls_bias"])).items())
+    state._metadata = collections.OrderedDict(
+        (str(k), {} if v < 0 else {"version": int(v)}) for k, v in zip(g["meta_keys"], g["meta_versions"]))
+    meta = {"mmdet3d_version": "1.4.0", "mmengine_version": "0.10.7", "epoch": 80,
+            "dataset_meta": {"classes": [str(c) for c in g["classes"]]}}
+    torch.save({"meta": meta, "state_dict": state}, path)
+
+
+@pytest.mark.xfail(strict=True, reason="8 of the 256 sampled bird's-eye-map entries differ by up to 5e-3 (the others "
+                   "within 1e-6), and two runs of the reference gave 31 and 32 Car boxes: not yet explained")
+def test_imported_dv_second_is_mmdet3d(tmp_path):
+    g = load("mmdet3d", "dv_second")
+    reference_file(g, tmp_path / "ref.pth")
+    import_checkpoint(tmp_path / "ref.pth", "mmdet3d", "dv_second", tmp_path / "ours.pt")
+    net = zoo.load_checkpoint(tmp_path / "ours.pt")[0]
+    points = torch.from_numpy(g["points"])
+    with torch.no_grad():
+        bev = net.bev(points)[0]  # (C, H, W) the map entering the 2D backbone
+        cls, _, _ = net.head(net.backbone2d(bev[None]))  # (A, 3) class logits
+        boxes, scores = net(points)
+    np.testing.assert_allclose(bev.numpy()[tuple(g["bev_index"].T)], g["bev_value"], rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(cls.numpy()[tuple(g["cls_index"].T)], g["cls_value"], rtol=1e-4, atol=1e-4)
+    want_boxes, want_scores = car_boxes(g)
+    assert len(want_boxes) > 0
+    assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_scores)
