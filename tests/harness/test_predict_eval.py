@@ -64,13 +64,13 @@ def test_the_stage_pairs_keep_their_names_keys_and_calls(tmp_path, monkeypatch):
     assert sorted(stages.calls) == sorted([
         ("predict_m", sotif, ["predictions/m"]),
         ("predict_val_m", sotif, ["predictions_val/m"]),
-        ("evaluate_m", {**sotif, "bootstrap": 5, "evaluator": run_mod_evaluator(), "predictions": "digest of predict_m"},
+        ("evaluate_m", {**sotif, "bootstrap": 5, "evaluator": _evaluator(), "predictions": "digest of predict_m"},
          ["results/m.json"]),
         ("predict_sweep_m", sweep, ["predictions_sweep/m"]),
-        ("evaluate_sweep_m", {**sweep, "bootstrap": 5, "evaluator": run_mod_evaluator(),
+        ("evaluate_sweep_m", {**sweep, "bootstrap": 5, "evaluator": _evaluator(),
                               "predictions": "digest of predict_sweep_m"}, ["results/m.sweep.json"]),
         ("predict_valset_m", vkey, ["predictions_valset/m"]),  # the val set's evaluation is keyed without bootstrap
-        ("evaluate_valset_m", {**vkey, "evaluator": run_mod_evaluator(), "predictions": "digest of predict_valset_m"},
+        ("evaluate_valset_m", {**vkey, "evaluator": _evaluator(), "predictions": "digest of predict_valset_m"},
          ["results_valset/m.json"])], key=str)
     groups = ["weather", "time_of_day", "precipitation_class"]
     sweep_groups = ["sweep_axis", "rain_rate_mmh", "fog_mor_m", "road_water", "precipitation_class"]
@@ -96,7 +96,7 @@ def test_the_stage_pairs_keep_their_names_keys_and_calls(tmp_path, monkeypatch):
         ("write", "m.json")], key=str)
 
 
-def run_mod_evaluator():
+def _evaluator():
     from harness.evaluate import EVALUATOR_VERSION
     return EVALUATOR_VERSION
 
