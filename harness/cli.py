@@ -212,13 +212,16 @@ def cmd_evaluate(a) -> int:
 def cmd_run(a) -> int:
     from harness.run import run
     models = _nonempty_csv(a.models, "--models")
-    if models:
+    if models == ["none"]:  # only the imported models of --checkpoints
+        models = []
+    elif models:
         from harness.names import resolve_names
         from models.zoo import MODEL_NAMES
         models = resolve_names(models, MODEL_NAMES, "--models", "model")
     out = run(profile=a.profile, models=models, out=Path(a.out) if a.out else None,
               progress=not a.quiet, runtime=a.runtime, jobs=a.jobs, seeds=a.seeds, lidar_model=a.lidar_model,
-              warm_start=a.warm_start, instances=a.instances, sweep_instances=a.sweep_instances)
+              warm_start=a.warm_start, instances=a.instances, sweep_instances=a.sweep_instances,
+              checkpoints=a.checkpoints)
     print(f"report: {out / 'index.html'}")
     return 0
 
@@ -370,7 +373,13 @@ def _add_run(sub, quiet) -> None:
     s.add_argument("--profile", choices=["quick", "default", "full"], default="default",
                    help="quick: a smoke run in minutes; default: compact models on 2 CPU cores (65-110 min); "
                         "full: the references' settings (GPU)")
-    s.add_argument("--models", help="comma-separated model names, as listed above (default: all available)")
+    s.add_argument("--models", help="comma-separated model names, as listed above (default: all available); "
+                                     "none: only the imported models of --checkpoints (no training set is made)")
+    s.add_argument("--checkpoints", metavar="DIR", type=_path,
+                   help="checkpoints written by `sotif-bench import` (a folder of .pt files, or one file): each is "
+                        "evaluated beside the --models as <model>_<source> (e.g. second_openpcdet), with its "
+                        "published weights and no training; with --models none --lidar-model carla --instances 1 "
+                        "this is the source study's protocol (docs/published.md)")
     s.add_argument("--out", type=_folder, help="run directory (default reports/<profile>)")
     s.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime", help="inference runtime (default onnxruntime)")
     s.add_argument("--jobs", type=_positive_int,

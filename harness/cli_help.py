@@ -47,7 +47,9 @@ COMMANDS = {  # name: (what it does, examples)
             "write the report (reports/NAME/index.html); a second run skips every stage whose inputs have not "
             "changed. Models: {models}.",
             ["sotif-bench run --profile quick --models pointpillars,second --out reports/quick",
-             "sotif-bench run --out reports/default --jobs 2"]),
+             "sotif-bench run --out reports/default --jobs 2",
+             "sotif-bench run --models none --checkpoints imported/ --lidar-model carla --instances 1 "
+             "--out reports/published"]),
     "report": ("Render a run folder's tables, figures, report.md and index.html again from its result files; "
                "with --sample, publish them as the repository's sample (reports/sample).",
                ["sotif-bench report reports/default", "sotif-bench report reports/default --sample reports/sample"]),

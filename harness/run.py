@@ -28,9 +28,10 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import provenance, valset
+from harness import provenance, published_run, valset
 from harness.jobs import interrupted, job_init
 from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
+from harness.predict_eval import predict_evaluate
 from harness.stages import Stages, file_digest
 from models.graph_cache import graph_code  # the export stage's key: a changed network exports again
 
@@ -59,6 +60,7 @@ class RunConfig:
     sotif_instances: int | None = None  # scenario instances per weather of the SOTIF set; None: the study's one
     sweep_instances: int | None = None  # instances of the weather sweep set (data/sweep); None: no sweep set
     val_frames: int | None = None  # the val set's held-out training-generator frames (harness.valset); None: none
+    published: tuple = ()  # (tag, checkpoint file) of the imported models the run evaluates (harness.published_run)
 
 
 # With ``warm_start``, these models' trainings start from the same draw of their sibling's
@@ -164,7 +166,6 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
 
 def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, draw: int = 0) -> dict:
     from harness.train import train, train_config
-    from models.export import export_checkpoint
     from models.zoo import config
     name = _model_of(tag)
     ckpt = checkpoint_of(run_dir, tag)
@@ -181,12 +182,18 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train
                                                         device=cfg.device, seed=seed, init_from=init,
                                                         progress=stages.bars, on_epoch=stages.epoch_line(tag)))},
                        outputs=[ckpt])
-    onnx_path = run_dir / "models" / f"{tag}.onnx"
+    export_stage(stages, run_dir, tag, name)
+    return tinfo
+
+
+def export_stage(stages: Stages, run_dir: Path, tag: str, expected_model: str) -> None:
+    """Export the checkpoint of ``tag`` to ``models/<tag>.onnx`` (stage ``export_<tag>``)."""
+    from models.export import export_checkpoint
+    ckpt, onnx_path = checkpoint_of(run_dir, tag), run_dir / "models" / f"{tag}.onnx"
     say = (lambda msg: print(stages.prefix + msg, flush=True)) if stages.progress else None
     stages.run(f"export_{tag}", {"checkpoint": file_digest(ckpt), "graph_code": graph_code()},
-               lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=name, say=say))},
+               lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=expected_model, say=say))},
                outputs=[onnx_path])
-    return tinfo
 
 
 def _checkpoint_meta(ckpt: Path) -> dict:
@@ -201,30 +208,16 @@ def _checkpoint_meta(ckpt: Path) -> dict:
 
 def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str,
                   threads: int | None = None, sweep_hash: str | None = None) -> dict:
-    from harness.evaluate import EVALUATOR_VERSION, evaluate, write_results
     from harness.infer import predict
-    onnx_path = run_dir / "models" / f"{name}.onnx"
-    data = run_dir / "data" / "sotif"
-    pred = run_dir / "predictions" / name
-    key = {"onnx": file_digest(onnx_path), "data": sotif_hash, "runtime": runtime}
-    stages.run(f"predict_{name}", key, lambda: {"summary": predict(onnx_path, data, pred, split="test", runtime=runtime,
-                                                                   progress=stages.bars, threads=threads)},
-               outputs=[pred])
+    data, pred = run_dir / "data" / "sotif", run_dir / "predictions" / name
+    key = predict_evaluate(stages, cfg, run_dir, name, "", data, sotif_hash, "test", pred,
+                           run_dir / "results" / f"{name}.json", runtime, threads, group_by=GROUP_COLUMNS)
     if (data / "ImageSets" / "val.txt").stat().st_size:
-        stages.run(f"predict_val_{name}", key, lambda: {"summary": predict(onnx_path, data, run_dir / "predictions_val" / name,
+        stages.run(f"predict_val_{name}", key, lambda: {"summary": predict(run_dir / "models" / f"{name}.onnx", data,
+                                                                           run_dir / "predictions_val" / name,
                                                                            split="val", runtime=runtime, progress=False,
                                                                            threads=threads)},
                    outputs=[run_dir / "predictions_val" / name])
-    res_path = run_dir / "results" / f"{name}.json"
-
-    def _evaluate():
-        res = evaluate(data, pred, split=data / "ImageSets" / "test.txt", group_by=list(GROUP_COLUMNS),
-                       meta=data / "meta" / "frames.csv", n_bootstrap=cfg.bootstrap, seed=cfg.seed)
-        write_results(res_path, res)
-        return {}
-    stages.run(f"evaluate_{name}", {**key, "bootstrap": cfg.bootstrap, "evaluator": EVALUATOR_VERSION,
-                                    "predictions": stages.outputs_digest(f"predict_{name}")}, _evaluate,
-               outputs=[res_path])
     if sweep_hash is not None:
         from harness.run_space import predict_eval_sweep
         predict_eval_sweep(stages, cfg, run_dir, name, sweep_hash, runtime, threads)
@@ -277,7 +270,10 @@ def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_h
     if interrupted():  # a job process that was interrupted takes no further job from the pool's queue
         raise KeyboardInterrupt("the run was interrupted")
     stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
-    tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
+    if published_run.source(cfg, tag):
+        tinfo = published_run.import_export(stages, cfg, run_dir, tag)
+    else:
+        tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
     ort = _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads, sweep_hash)
     valset.predict_evaluate(stages, cfg, run_dir, tag, runtime, threads)
     return tinfo, ort
@@ -290,7 +286,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
     little from a second thread in one step, so two models side by side finish sooner than one
     after the other), or in this process."""
     say = (lambda msg: print(msg, flush=True)) if progress else (lambda msg: None)
-    draws = {draw_tag(n, d): d for d in range(cfg.seeds) for n in models}
+    draws = {draw_tag(n, d): d for d in range(cfg.seeds) for n in models if d < published_run.draws(cfg, n)}
     names = list(draws)
     waits = {}  # the sibling a job waits for: one trained in this run (an earlier run's checkpoint waits for nothing)
     for n in names:
@@ -383,15 +379,17 @@ def _work_left(cfg: RunConfig, run_dir: Path, name: str) -> float:
     most of the rest."""
     from harness.train import train_config
     from models.zoo import CheckpointError, read_checkpoint
+    test = run_dir / "data" / "sotif" / "ImageSets" / "test.txt"
+    n_test = len(test.read_text().split()) if test.is_file() else 0
+    predicted = len(list((run_dir / "predictions" / name).glob("[0-9]*.txt")))
+    if published_run.source(cfg, name):  # nothing to train
+        return 0.15 * max(0.0, 1 - predicted / n_test) if n_test else 0.15
     epochs = cfg.epochs or train_config(_model_of(name), cfg.model_profile).epochs
     ckpt = checkpoint_of(run_dir, name)
     try:
         done = read_checkpoint(ckpt).get("epoch", 0) if ckpt.is_file() else 0
     except CheckpointError:
         done = 0  # the train stage says what is wrong with it
-    test = run_dir / "data" / "sotif" / "ImageSets" / "test.txt"
-    n_test = len(test.read_text().split()) if test.is_file() else 0
-    predicted = len(list((run_dir / "predictions" / name).glob("[0-9]*.txt")))
     return 0.85 * max(0.0, 1 - done / epochs) + 0.15 * max(0.0, 1 - predicted / n_test) if n_test else 1.0
 
 
@@ -419,7 +417,7 @@ def resolve(profile: str, models, out, config: RunConfig | None = None) -> tuple
             print(f"sotif-bench run: no CUDA device here: the {cfg.profile} profile's {cfg.model_profile} models "
                   f"train on the CPU ({cfg.train_frames} training scenes, each model on its {cfg.model_profile} "
                   "schedule, OpenPCDet's GPU settings)", file=sys.stderr, flush=True)
-    names = list(models) if models else list(available())
+    names = list(models) if models is not None else list(available())
     bad = [m for m in names if m not in MODEL_NAMES]
     if bad:
         raise ValueError(f"unknown model(s) {', '.join(bad)}; expected names from {', '.join(MODEL_NAMES)}")
@@ -448,7 +446,7 @@ def _refuse_foreign_folder(run_dir: Path) -> None:
 def run(profile: str = "default", models=None, out=None, progress: bool = True, runtime: str = "onnxruntime",
         config: RunConfig | None = None, jobs: int | None = None, seeds: int | None = None,
         lidar_model: str | None = None, warm_start: bool | None = None, instances: int | None = None,
-        sweep_instances: int | None = None) -> Path:
+        sweep_instances: int | None = None, checkpoints=None) -> Path:
     """The whole benchmark into ``out`` (default reports/<profile>); returns the run directory.
 
     ``config`` replaces the profile's RunConfig (tests use a smaller one); ``jobs`` its number of
@@ -457,7 +455,9 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
     CARLA's weather-blind LiDAR (the paper's protocol); ``warm_start`` starts PV-RCNN and Part-A2
     from the run's SECOND and MVX-Net from its DV-SECOND (``WARM_FROM``), which then train first;
     ``instances`` the SOTIF set's scenario instances per weather (1: the study's set) and
-    ``sweep_instances`` the sweep set's (a finer map costs prediction time, not training)."""
+    ``sweep_instances`` the sweep set's (a finer map costs prediction time, not training); ``checkpoints``
+    a checkpoint ``import`` wrote, or a folder of them, evaluated beside ``models`` (``harness.published_run``;
+    ``models`` [] runs them alone, and no training set is simulated)."""
     from harness.report import render
     cfg, names, run_dir = resolve(profile, models, out, config)
     for flag, value in (("instances", instances), ("sweep instances", sweep_instances)):
@@ -480,6 +480,8 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         cfg = replace(cfg, seeds=seeds)
     profile = cfg.profile
     names = with_siblings(cfg, run_dir, names, progress)
+    cfg, names = published_run.add(cfg, names, checkpoints)
+    trained = published_run.trained(cfg, names)
     _refuse_foreign_folder(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     with folder_lock(run_dir, "run"):
@@ -491,29 +493,30 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
                                                                "code": code}, indent=1))
         stages = Stages(run_dir, progress)
         t0 = time.perf_counter()
-        train_hash = _simulate(stages, cfg, run_dir / "data", "train")
+        train_hash = _simulate(stages, cfg, run_dir / "data", "train") if trained else None
         sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
         sweep_hash = _simulate(stages, cfg, run_dir / "data", "sweep") if cfg.sweep_instances else None
         valset.simulate(stages, cfg, run_dir, DATA_PARTS)
-        _gt_database(cfg, run_dir, names)
+        _gt_database(cfg, run_dir, trained)
         done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0, sweep_hash)
         summary = {}
         for name in names:  # one model at a time: the latency figures own the machine
             probe = _runtime_probe(stages, cfg, run_dir, name)
-            summary[name] = _model_summary(cfg, run_dir, name, *done[name], probe)
+            entry = _model_summary(cfg, run_dir, name, *done[name], probe)
+            summary[name] = published_run.mark(cfg, run_dir, name, entry)
         data_stats(run_dir)
-        ids = lambda s: len((run_dir / "data" / "sotif" / "ImageSets" / f"{s}.txt").read_text().split())
+        ids = lambda s, d="sotif": len((run_dir / "data" / d / "ImageSets" / f"{s}.txt").read_text().split())
         infos = {p.stem: json.loads(p.read_text())["info"] for p in sorted((run_dir / ".stages").glob("*.json"))}
         result = {"schema": RUN_SCHEMA, "profile": profile, "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
                   "config": asdict(cfg), "code": code, "models": summary,
                   "data": {"n_test_frames": ids("test"), "n_val_frames": ids("val"),
-                           "n_train_frames": len((run_dir / "data" / "train" / "ImageSets" / "train.txt").read_text().split()),
+                           "n_train_frames": ids("train", "train") if trained else None,
                            "stats": "tables/data_stats.csv"},
                   "stage_seconds": {n: i.get("seconds") for n, i in infos.items()},
                   "wall_seconds": _wall_span(infos)}
         if cfg.seeds > 1:
             result["draws"] = {n: [_draw_summary(run_dir, draw_tag(n, d), cfg.seed + d) for d in range(cfg.seeds)]
-                               for n in names}
+                               for n in trained}
         atomic_write_text(run_dir / "results.json", json.dumps(result, indent=1, default=str))
         render(run_dir)
     return run_dir

@@ -16,7 +16,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from harness.stages import Stages, file_digest
+from harness.predict_eval import predict_evaluate
+from harness.stages import Stages
 
 SWEEP_GROUPS = ("sweep_axis", "rain_rate_mmh", "fog_mor_m", "road_water", "precipitation_class")
 SETS = ("sotif", "sweep")
@@ -30,24 +31,9 @@ def predictions_of(run_dir: Path, data_set: str, name: str) -> Path:
 def predict_eval_sweep(stages: Stages, cfg, run_dir: Path, name: str, sweep_hash: str, runtime: str,
                        threads: int | None = None) -> None:
     """Predict the sweep set's test frames with a model's ONNX file and evaluate them."""
-    from harness.evaluate import EVALUATOR_VERSION, evaluate, write_results
-    from harness.infer import predict
-    onnx_path = run_dir / "models" / f"{name}.onnx"
-    data, pred = run_dir / "data" / "sweep", predictions_of(run_dir, "sweep", name)
-    key = {"onnx": file_digest(onnx_path), "data": sweep_hash, "runtime": runtime}
-    stages.run(f"predict_sweep_{name}", key, lambda: {"summary": predict(onnx_path, data, pred, split="test",
-                                                                         runtime=runtime, progress=stages.bars,
-                                                                         threads=threads)}, outputs=[pred])
-    res_path = run_dir / "results" / f"{name}.sweep.json"
-
-    def _evaluate():
-        res = evaluate(data, pred, split=data / "ImageSets" / "test.txt", group_by=list(SWEEP_GROUPS),
-                       meta=data / "meta" / "frames.csv", n_bootstrap=cfg.bootstrap, seed=cfg.seed)
-        write_results(res_path, res)
-        return {}
-    stages.run(f"evaluate_sweep_{name}", {**key, "bootstrap": cfg.bootstrap, "evaluator": EVALUATOR_VERSION,
-                                          "predictions": stages.outputs_digest(f"predict_sweep_{name}")},
-               _evaluate, outputs=[res_path])
+    predict_evaluate(stages, cfg, run_dir, name, "sweep_", run_dir / "data" / "sweep", sweep_hash, "test",
+                     predictions_of(run_dir, "sweep", name), run_dir / "results" / f"{name}.sweep.json", runtime,
+                     threads, group_by=SWEEP_GROUPS)
 
 
 def latency_s(runtime: dict) -> float:

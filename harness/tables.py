@@ -18,6 +18,7 @@ import pandas as pd
 from harness import report_space, result_schema
 from harness.cells import DIFFS, DISTANCE_BINS, mark_capped, round_floats
 from harness.kitti import KittiError, atomic_write_text, read_frames_meta
+from harness.published_run import weights
 
 RUN_SCHEMA = "sotif-bench/run/1"
 CLEAN_PRESETS = ("ClearNoon", "ClearSunset")
@@ -336,9 +337,9 @@ def stage_table(summary: dict) -> pd.DataFrame:
 
 
 def overview_table(run: Run, t: dict) -> pd.DataFrame:
-    """One row per model: what it is, its training (epochs, minutes, AP40 3D moderate on the held-out
-    dry frames of the training generator) and its key numbers on the SOTIF set (headline AP, mRR,
-    SOTIF passes, latency)."""
+    """One row per model: what it is, whether its weights were trained here or published (``weights``), its
+    training (epochs, minutes, AP40 3D moderate on the held-out dry frames of the training generator) and
+    its key numbers on the SOTIF set (headline AP, mRR, SOTIF passes, latency)."""
     rob = t["robustness"].set_index("model") if not t["robustness"].empty else pd.DataFrame()
     rt = t["runtime"].set_index("model") if not t["runtime"].empty else pd.DataFrame()
     so = t["sotif"]
@@ -346,7 +347,7 @@ def overview_table(run: Run, t: dict) -> pd.DataFrame:
     for name, m in run.summary["models"].items():
         res = run.results[name]
         judged = so[(so["model"] == name) & (so["verdict"] != "n/a")] if not so.empty else so
-        rows.append({"model": name, "architecture": m.get("architecture"),
+        rows.append({"model": name, "architecture": m.get("architecture"), "weights": weights(m),
                      "stages": "two" if m.get("two_stage") else "one", "camera": bool(m.get("uses_camera")),
                      "epochs": _get(m, "train", "epochs", default=None),
                      "train min": _get(m, "train", "seconds") / 60,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+from harness import predict_eval
 from harness.kitti import atomic_write_text, read_frames_meta
 from harness.stages import Stages, file_digest
 
@@ -48,21 +49,11 @@ def predict_evaluate(stages: Stages, cfg, run_dir: Path, tag: str, runtime: str,
     """Predict every frame of the val set with a draw's ONNX file and evaluate it (nothing without a val set)."""
     if not cfg.val_frames or not (run_dir / FRAME_LIST).is_file():
         return
-    from harness.evaluate import EVALUATOR_VERSION, evaluate, write_results
-    from harness.infer import predict
-    onnx_path, data = run_dir / "models" / f"{tag}.onnx", run_dir / VAL_DATA
-    pred, res = run_dir / VALSET_PREDICTIONS / tag, run_dir / RESULTS / f"{tag}.json"
-    key = {"onnx": file_digest(onnx_path), "data": file_digest(data / "meta" / "dataset.json"), "runtime": runtime}
-    stages.run(f"predict_valset_{tag}", key, lambda: {"summary": predict(
-        onnx_path, data, pred, split=run_dir / FRAME_LIST, runtime=runtime, progress=False, threads=threads)},
-        outputs=[pred])
-
-    def _evaluate() -> dict:
-        write_results(res, evaluate(data, pred, split=run_dir / FRAME_LIST, n_bootstrap=cfg.bootstrap, seed=cfg.seed))
-        return {}
-    stages.run(f"evaluate_valset_{tag}", {**key, "evaluator": EVALUATOR_VERSION,
-                                          "predictions": stages.outputs_digest(f"predict_valset_{tag}")},
-               _evaluate, outputs=[res])
+    data = run_dir / VAL_DATA
+    predict_eval.predict_evaluate(stages, cfg, run_dir, tag, "valset_", data,
+                                  file_digest(data / "meta" / "dataset.json"), run_dir / FRAME_LIST,
+                                  run_dir / VALSET_PREDICTIONS / tag, run_dir / RESULTS / f"{tag}.json", runtime,
+                                  threads, bars=False, keyed_bootstrap=False)
 
 
 def val_summary(run_dir: Path, tag: str) -> dict | None:
