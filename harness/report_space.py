@@ -66,14 +66,16 @@ def pass_rate_table(instances: pd.DataFrame) -> pd.DataFrame:
     return df[["model", "set", *[c for c in df.columns if c not in ("model", "set")]]] if not df.empty else df
 
 
-RATE_ROWS = {"sotif": ("weather", "precipitation_class"), "sweep": ("weather", *AXIS_COLUMNS.values())}
+RATE_ROWS = {"sotif": ("weather", "precipitation_class"),
+             "sweep": ("weather", *AXIS_COLUMNS.values(), "sc_slow_body", "sc_slow_paint")}
 COLUMN_LABELS = {"weather": "all instances", "precipitation_class": "precipitation", "rain_rate_mmh": "rain (mm/h)",
-                 "fog_mor_m": "fog visibility (m)", "road_water": "road water (share)"}
+                 "fog_mor_m": "fog visibility (m)", "road_water": "road water (share)", "sc_slow_body": "slow vehicle",
+                 "sc_slow_paint": "slow vehicle paint"}
 
 
 def rate_matrix(rates: pd.DataFrame) -> pd.DataFrame:
     """The report's pass-rate table: one row per set and condition bin (the SOTIF set by precipitation
-    class, the sweep set whole and by each axis), one column per model, cells "passed / feasible (rate)";
+    class, the sweep set whole, by each axis and by the slow vehicle's body and paint), one column per model, cells "passed / feasible (rate)";
     ``n_infeasible`` counts the instances no detector could pass. The presets one by one (two instances
     each in the default run) stay in tables/sotif_pass_rates.csv."""
     if rates.empty:
