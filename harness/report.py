@@ -51,6 +51,7 @@ HOW_TO_READ = {  # one sentence opening each section: how to read it
             "detector ran.",
     "stages": "Use it to see where the run's time went.",
     "sotif_space": report_space.HOW_TO_READ,
+    "sotif_answer": report_space.ANSWER_HOW_TO_READ,
     "draws": "A difference between two models means something only where it is larger than each model's range "
              "over its training draws, and that range is often wider than the bootstrap interval over frames.",
     **report_pairs.HOW_TO_READ,
@@ -212,13 +213,14 @@ def _space_section(run: tables.Run, t: dict) -> list[Section]:
     if "sotif_instances" not in t:
         return []
     matrix = report_space.rate_matrix(t.get("sotif_pass_rates", pd.DataFrame()))
-    return [Section("sotif_space", "SOTIF over the scenario space", report_space.section_intro(run.summary, t),
-                    [("Instances passed of the feasible ones, per condition (intervals: tables/sotif_pass_rates.csv)",
-                      matrix, 2),
-                     ("Triggering conditions: the swept condition bins with the lowest pass rate",
-                      t.get("triggering_conditions", pd.DataFrame()), 2),
-                     ("Expected calibration error per weather class", t.get("calibration", pd.DataFrame()), 3)],
-                    ["sotif_margins", *_boundary_names(run, t), "reliability"])]
+    answer = [Section("sotif_answer", "Where each detector stops finding the slow car in time",
+                      report_space.answer_intro(t), [("", matrix, 2)], ["sotif_margins"], lead=True)] \
+        if not matrix.empty else []
+    return answer + [Section("sotif_space", "SOTIF over the scenario space", report_space.section_intro(run.summary, t),
+                             [("Triggering conditions: the swept condition bins with the lowest pass rate",
+                               t.get("triggering_conditions", pd.DataFrame()), 2),
+                              ("Expected calibration error per weather class", t.get("calibration", pd.DataFrame()), 3)],
+                             [*_boundary_names(run, t), "reliability"])]
 
 
 def _boundary_names(run: tables.Run, t: dict) -> list[str]:

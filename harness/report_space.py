@@ -26,10 +26,26 @@ BOUNDARY_MAPS = {  # map name -> (frame column, bin edges, axis label)
     "fog": ("fog_mor_m", [0.0, 100.0, 200.0, 500.0, 1000.0, 2000.0, np.inf], "fog visibility MOR (m); last: none"),
     "reflectance": ("sc_slow_reflectance", [0.0, 0.05, 0.1, 0.2, 0.4, 0.6, 1.0001], "slow car reflectance at 905 nm"),
 }
-HOW_TO_READ = ("Read down a model's column: where its passes fall from the clear rows to the heavy rain or thick "
-               f"fog bins, it stops being safe (a bin with fewer than {MIN_INSTANCES} feasible instances is too few "
-               "to judge); the maps show where each detector stops finding the slow car (dark cells), and the "
-               "triggering conditions list where it fails most.")
+HOW_TO_READ = ("The maps show where each detector stops finding the slow car (dark cells); the triggering "
+               "conditions list the condition bins where it fails most, those with fewer than "
+               f"{MIN_INSTANCES} feasible instances marked too few to judge.")
+
+
+ANSWER_HOW_TO_READ = ("Read down a model's column: a cell is the scenario instances in which it confirmed the "
+                      "slow car in time to brake, of those an ideal detector passes; where the passes fall (heavy "
+                      "rain, thick fog, a van or truck, dark paint) it stops being safe. A bin with fewer than "
+                      f"{MIN_INSTANCES} feasible instances is too few to judge.")
+
+
+def answer_intro(t: dict) -> str:
+    """The lead table's text: what a cell is and where the rest of the section is."""
+    inst = t["sotif_instances"]
+    counts = ", ".join(f"{s}: {g['instance_key'].nunique()} instances" for s, g in inst.groupby("set", sort=False))
+    return (f"Scenario instances ({counts}) passed per model: the slow car confirmed (3 hits in 5 consecutive "
+            "frames) with the braking margin, latency included, >= 0. The SOTIF set is the 21 presets with their "
+            "instances pooled by precipitation; the sweep set moves one weather axis per instance and draws the "
+            "scenario too. Rule, intervals, maps and the triggering conditions: \"SOTIF over the scenario "
+            "space\" below.")
 
 
 def _views(summary: dict):

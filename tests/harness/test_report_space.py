@@ -74,6 +74,9 @@ def test_tables_and_section(space_run):
     md = (root / "report.md").read_text()
     assert "## SOTIF over the scenario space" in md and "holding 3 hits" in md and "Wilson" in md
     assert "sweep: 12 instances" in md and "bootstrap over frames" in md
+    lead = md.index("## Where each detector stops finding the slow car in time")
+    assert lead < md.index("## Models at a glance") < md.index("## SOTIF over the scenario space")
+    assert "| sweep | all instances |" in md[lead:md.index("## Models at a glance")]
     for fig in ("sotif_margins", "boundary_alpha", "boundary_beta", "reliability"):
         assert (root / "figures" / f"{fig}.png").is_file() and f"figures/{fig}.png" in md
 
