@@ -107,7 +107,7 @@ def rate_matrix(rates: pd.DataFrame) -> pd.DataFrame:
     wide = keep.pivot_table(index=index, columns="model", values="cell", aggfunc="first", sort=False)
     infeasible = keep.groupby(index, sort=False)["n_infeasible"].max()
     wide = wide[[m for m in dict.fromkeys(keep["model"])]].assign(n_infeasible=infeasible)
-    return wide.reset_index()
+    return wide.rename_axis(columns=None).reset_index()  # no 'model' axis name over the index
 
 
 def triggering_table(rates: pd.DataFrame, per_model: int = N_TRIGGERING) -> pd.DataFrame:

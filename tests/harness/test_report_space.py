@@ -77,6 +77,8 @@ def test_tables_and_section(space_run):
     lead = md.index("## Where each detector stops finding the slow car in time")
     assert lead < md.index("## Models at a glance") < md.index("## SOTIF over the scenario space")
     assert "| sweep | all instances |" in md[lead:md.index("## Models at a glance")]
+    matrix = report_space.rate_matrix(rates)
+    assert matrix.columns.name is None and list(matrix.columns[:2]) == ["set", "condition"]
     for fig in ("sotif_margins", "boundary_alpha", "boundary_beta", "reliability"):
         assert (root / "figures" / f"{fig}.png").is_file() and f"figures/{fig}.png" in md
 
