@@ -67,9 +67,8 @@ def assert_same_boxes(boxes, scores, want_boxes, want_scores):
     assert box <= 1e-3 and score <= 1e-4, (box, score)
 
 
-@pytest.mark.parametrize("source,model", CASES)
-def test_imported_network_is_the_reference(source, model, tmp_path):
-    net, g = imported(source, model, tmp_path)
+def assert_matches_golden(net, g: dict) -> None:
+    """``net`` on the golden frame against the reference: sampled BEV map and class logits, final Car boxes."""
     points = torch.from_numpy(g["points"])
     with torch.no_grad():
         bev = net.bev(points)[0]  # (C, H, W) the map entering the 2D backbone
@@ -80,3 +79,9 @@ def test_imported_network_is_the_reference(source, model, tmp_path):
     want_boxes, want_scores = car_boxes(g)
     assert len(want_boxes) > 0
     assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_scores)
+
+
+@pytest.mark.parametrize("source,model", CASES)
+def test_imported_network_is_the_reference(source, model, tmp_path):
+    net, g = imported(source, model, tmp_path)
+    assert_matches_golden(net, g)

@@ -7,14 +7,13 @@ and run: the bird's-eye map, the class logits and the final Car boxes must match
 import collections
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
 
 from benchmarks.golden_weights import fill
 from harness.import_weights import import_checkpoint
 from models import zoo
-from tests.models.test_published_golden import assert_same_boxes, car_boxes, load
+from tests.models.test_published_golden import assert_matches_golden, load
 
 GOLDEN = Path(__file__).parents[1] / "golden"
 
@@ -37,14 +36,4 @@ def test_imported_dv_second_is_mmdet3d(tmp_path):
     g = load("mmdet3d", "dv_second")
     reference_file(g, tmp_path / "ref.pth")
     import_checkpoint(tmp_path / "ref.pth", "mmdet3d", "dv_second", tmp_path / "ours.pt")
-    net = zoo.load_checkpoint(tmp_path / "ours.pt")[0]
-    points = torch.from_numpy(g["points"])
-    with torch.no_grad():
-        bev = net.bev(points)[0]  # (C, H, W) the map entering the 2D backbone
-        cls, _, _ = net.head(net.backbone2d(bev[None]))  # (A, 3) class logits
-        boxes, scores = net(points)
-    np.testing.assert_allclose(bev.numpy()[tuple(g["bev_index"].T)], g["bev_value"], rtol=1e-4, atol=1e-4)
-    np.testing.assert_allclose(cls.numpy()[tuple(g["cls_index"].T)], g["cls_value"], rtol=1e-4, atol=1e-4)
-    want_boxes, want_scores = car_boxes(g)
-    assert len(want_boxes) > 0
-    assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_scores)
+    assert_matches_golden(zoo.load_checkpoint(tmp_path / "ours.pt")[0], g)
