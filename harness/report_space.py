@@ -37,10 +37,15 @@ ANSWER_HOW_TO_READ = ("Read down a model's column: a cell is the scenario instan
                       f"{MIN_INSTANCES} feasible instances is too few to judge.")
 
 
+def _instance_counts(inst: pd.DataFrame) -> str:
+    """"sotif: 42 instances, sweep: 30 instances" of the instances table."""
+    return ", ".join(f"{s}: {g['instance_key'].nunique()} instances" for s, g in inst.groupby("set", sort=False))
+
+
 def answer_intro(t: dict) -> str:
     """The lead table's text: what a cell is and where the rest of the section is."""
     inst = t["sotif_instances"]
-    counts = ", ".join(f"{s}: {g['instance_key'].nunique()} instances" for s, g in inst.groupby("set", sort=False))
+    counts = _instance_counts(inst)
     return (f"Scenario instances ({counts}) passed per model: the slow car confirmed (3 hits in 5 consecutive "
             "frames) with the braking margin, latency included, >= 0. The SOTIF set is the 21 presets with their "
             "instances pooled by precipitation; the sweep set moves one weather axis per instance and draws the "
@@ -82,7 +87,7 @@ def pass_rate_table(instances: pd.DataFrame) -> pd.DataFrame:
     return df[["model", "set", *[c for c in df.columns if c not in ("model", "set")]]] if not df.empty else df
 
 
-RATE_ROWS = {"sotif": ("weather", "precipitation_class"),
+RATE_ROWS = {"sotif": ("precipitation_class",),
              "sweep": ("weather", *AXIS_COLUMNS.values(), "sc_slow_body", "sc_slow_paint")}
 COLUMN_LABELS = {"weather": "all instances", "precipitation_class": "precipitation", "rain_rate_mmh": "rain (mm/h)",
                  "fog_mor_m": "fog visibility (m)", "road_water": "road water (share)", "sc_slow_body": "slow vehicle",
@@ -97,7 +102,6 @@ def rate_matrix(rates: pd.DataFrame) -> pd.DataFrame:
     if rates.empty:
         return pd.DataFrame()
     keep = pd.concat([rates[(rates["set"] == s) & rates["column"].isin(cols)] for s, cols in RATE_ROWS.items()])
-    keep = keep[~((keep["set"] == "sotif") & (keep["column"] == "weather"))]
     if keep.empty:
         return pd.DataFrame()
     keep = keep.assign(cell=[f"{int(r.n_pass)}/{int(r.n)}" + (f" ({r.rate:.2f})" if r.n else "") for r in keep.itertuples()],
@@ -276,7 +280,7 @@ def section_intro(summary: dict, t: dict) -> str:
     """The section's text: the rule, the latency, the interval method and the instance counts."""
     inst = t["sotif_instances"]
     rule = next((v["rule"] for _, _, v in _views(summary)), {"k": 3, "n": 5})
-    counts = ", ".join(f"{s}: {g['instance_key'].nunique()} instances" for s, g in inst.groupby("set", sort=False))
+    counts = _instance_counts(inst)
     return (f"Per scenario instance ({counts}): the slow car counts as found at the first frame that closes "
             f"{rule['n']} consecutive frames (at or after the lane change) holding {rule['k']} hits (score >= the "
             "model's operating threshold, BEV IoU >= 0.5). The braking margin is the gap left at that frame, had "
