@@ -43,6 +43,45 @@ def _run(scene: rtcs.EmbreeScene, origins: np.ndarray, dirs: np.ndarray, max_t: 
                      np.ascontiguousarray(dirs, dtype=np.float32), dists=max_t, output=1)
 
 
+def _exact_run(scene: rtcs.EmbreeScene, triangles: np.ndarray, origins32: np.ndarray, dirs32: np.ndarray,
+               max_t: float | np.ndarray = 1e37) -> dict:
+    """_run with the distance and the normal of each hit recomputed from its triangle (exact_hits).
+
+    Embree picks its kernels by instruction set (SSE, AVX2, AVX-512) and its tfar and Ng differ between
+    them in the last bits; only the triangle it hits is kept, so the same rays give the same bytes on
+    every CPU."""
+    res = _run(scene, origins32, dirs32, max_t)
+    res["tfar"], res["Ng"] = exact_hits(triangles, res["primID"], origins32, dirs32, res["tfar"])
+    return res
+
+
+@numba.njit(cache=True)
+def exact_hits(tris: np.ndarray, prim: np.ndarray, origins: np.ndarray, dirs: np.ndarray,
+               tfar: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distance (N,) float32 and geometric normal (N, 3) float32 of each ray's hit triangle prim (N,),
+    computed in float64 from the float32 triangles (T, 3, 3) and rays (N, 3): the ray meets the
+    triangle's plane at t = ((v0 - o) . n) / (d . n), n = (v1 - v0) x (v2 - v0). Misses (prim < 0)
+    keep tfar. Plain IEEE products and sums (no fused multiply-add, no library call), so the result
+    does not depend on the instruction set."""
+    n = prim.shape[0]
+    t_out = tfar.astype(np.float32)
+    ng = np.zeros((n, 3), np.float32)
+    for i in range(n):
+        p = prim[i]
+        if p < 0:
+            continue
+        ax, ay, az = float(tris[p, 0, 0]), float(tris[p, 0, 1]), float(tris[p, 0, 2])
+        e1x, e1y, e1z = float(tris[p, 1, 0]) - ax, float(tris[p, 1, 1]) - ay, float(tris[p, 1, 2]) - az
+        e2x, e2y, e2z = float(tris[p, 2, 0]) - ax, float(tris[p, 2, 1]) - ay, float(tris[p, 2, 2]) - az
+        nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+        denom = float(dirs[i, 0]) * nx + float(dirs[i, 1]) * ny + float(dirs[i, 2]) * nz
+        if denom != 0.0:
+            o = origins[i]
+            t_out[i] = ((ax - float(o[0])) * nx + (ay - float(o[1])) * ny + (az - float(o[2])) * nz) / denom
+        ng[i, 0], ng[i, 1], ng[i, 2] = nx, ny, nz
+    return t_out, ng
+
+
 def first_hit_distance(triangles: np.ndarray, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """(N,) distance to the first hit on a triangle soup (inf on miss); dirs must be unit."""
     res = _run(_scene(triangles), origins, dirs)
@@ -132,6 +171,7 @@ class RayScene:
         self._static = _scene(world.triangles)
         self.static_material = world.material.astype(np.int64)  # (T,) material id per world triangle
         self._dynamic: rtcs.EmbreeScene | None = None
+        self._dynamic_triangles = np.zeros((0, 3, 3), np.float32)  # (V, 3, 3) the vehicles' triangles
         self.dyn_material = np.zeros(1, np.int64)  # (V,) per vehicle triangle (one dummy entry when empty)
         self.dyn_actor = np.zeros(1, np.int64)
         self.spheres = (np.zeros((0, 3)), np.zeros(0))  # vehicle bounding spheres: centres (K, 3), radii (K,)
@@ -156,7 +196,8 @@ class RayScene:
             self._dynamic = None
             self.dyn_material, self.dyn_actor = np.zeros(1, np.int64), np.zeros(1, np.int64)
         else:
-            self._dynamic = _scene(np.concatenate(tris))
+            self._dynamic_triangles = np.ascontiguousarray(np.concatenate(tris), dtype=np.float32)
+            self._dynamic = _scene(self._dynamic_triangles)
             self.dyn_material = np.concatenate(mats).astype(np.int64)
             self.dyn_actor = np.concatenate(actors).astype(np.int64)
         self._lidar_tables()
@@ -186,12 +227,13 @@ class RayScene:
                    max_t: float = 1e37) -> tuple[dict, dict]:
         """Raw Embree results (float32 (N, 3) origins and dirs, hits up to max_t): the static world
         for all rays and the vehicles for the rays `near` (sorted indices) only."""
-        st = _run(self._static, origins32, dirs32, max_t)
+        st = _exact_run(self._static, self.world.triangles, origins32, dirs32, max_t)
         if self._dynamic is None or len(near) == 0:
             return st, {"tfar": np.zeros(0, np.float32), "primID": np.zeros(0, np.int32),
                         "Ng": np.zeros((0, 3), np.float32)}
         # a vehicle counts only when nearer than the static hit: stop each ray there
-        return st, _run(self._dynamic, origins32[near], dirs32[near], st["tfar"][near])
+        return st, _exact_run(self._dynamic, self._dynamic_triangles, origins32[near], dirs32[near],
+                              st["tfar"][near])
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> Hits:
         """First hits of rays (origins (N, 3) or (3,), unit dirs (N, 3)), world frame."""
