@@ -124,7 +124,8 @@ def cmd_simulate(a) -> int:
     out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=weathers,
                    seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet, force=a.force,
                    instances=a.instances)
-    print(f"data set written to {out}")
+    from simulator.dataset import read_content_digest
+    print(f"data set written to {out} (content SHA-256 {read_content_digest(out)}, in meta/dataset.json)")
     return 0
 
 

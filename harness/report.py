@@ -19,7 +19,7 @@ import pandas as pd
 from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
-from harness import figures, notes, provenance, rain, rain_figures, report_pairs, report_space, sotif, tables
+from harness import data_identity, figures, notes, provenance, rain, rain_figures, report_pairs, report_space, sotif, tables
 from harness.cells import mark_capped
 from harness.kitti import atomic_write_bytes, atomic_write_text
 from harness.published_run import published_note
@@ -323,7 +323,8 @@ def _overview(run: tables.Run) -> dict:
     return {"profile": s.get("profile", "?"), "smoke": SMOKE_BANNER if s.get("profile") == "quick" else None,
             "created": s.get("created", "?"), "models": models, "frames": frames, "total_seconds": total or None,
             "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"], "vals": vals, "val": _val_set(s), "draws_note": report_pairs.draws_note(s),
-            "val_note": notes.val_note(vals), "published": published_note(s), "val_header": notes.val_header(vals), "code": provenance.compare(s.get("code")), "glossary": _glossary(run.run_dir)}
+            "val_note": notes.val_note(vals), "published": published_note(s), "val_header": notes.val_header(vals), "code": provenance.compare(s.get("code")),
+            "data_sets": data_identity.note(run.run_dir), "glossary": _glossary(run.run_dir)}
 
 
 def _glossary(run_dir: Path) -> str | None:

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import provenance, published_run, valset
+from harness import data_identity, provenance, published_run, valset
 from harness.jobs import interrupted, job_init
 from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
 from harness.predict_eval import predict_evaluate
@@ -497,6 +497,9 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
         sweep_hash = _simulate(stages, cfg, run_dir / "data", "sweep") if cfg.sweep_instances else None
         valset.simulate(stages, cfg, run_dir, DATA_PARTS)
+        data_identity.write_data_sets(run_dir)
+        for line in data_identity.compare(run_dir) if progress else ():
+            print(line, flush=True)
         _gt_database(cfg, run_dir, trained)
         done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0, sweep_hash)
         summary = {}

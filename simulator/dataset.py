@@ -31,7 +31,7 @@ from simulator.space import SWEEP_WEATHER, ScenarioSpace, check_space, instances
 from simulator.toolkit_views import write_views
 from simulator.weather import DRY_PRESETS, WEATHER_PRESETS
 
-GENERATOR_VERSION = "1.4"  # bump whenever the same seed gives other bytes
+GENERATOR_VERSION = "1.5"  # bump whenever the same seed gives other bytes
 PRESETS = ("sotif", "train", "sweep")
 LIDAR_MODELS = ("physics", "carla")
 SOTIF_FRAMES, SOTIF_VAL = 547, 55
@@ -174,6 +174,23 @@ def sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def content_digest(files: dict[str, str]) -> str:
+    """SHA-256 over the sorted (relative path, file SHA-256) pairs of a data set: its identity. Two sets
+    with this digest equal hold the same bytes (meta/dataset.json, which carries it, is not among them)."""
+    lines = "".join(f"{rel}\0{files[rel]}\n" for rel in sorted(files))
+    return hashlib.sha256(lines.encode()).hexdigest()
+
+
+def read_content_digest(root: Path) -> str | None:
+    """The content digest meta/dataset.json records (computed from its file list for a set written before
+    the digest was recorded); None without a readable meta/dataset.json."""
+    try:
+        meta = json.loads((Path(root) / "meta" / "dataset.json").read_text())
+        return meta.get("content_sha256") or content_digest(meta["files"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
+
+
 def _record_path(root: Path, frame_id: str) -> Path:
     return root / "meta" / "frames" / f"{frame_id}.json"
 
@@ -308,7 +325,7 @@ def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None
             "config": cfg.as_dict(), "config_sha256": cfg.digest(), "sensors": {"lidar": cfg.lidar.as_dict(),
             "camera": cfg.camera.as_dict()}, "n_frames": len(df),
             "splits": {s: int((df["split"] == s).sum()) for s in ("train", "val", "test")},
-            "files": dict(sorted(files.items()))}
+            "files": dict(sorted(files.items())), "content_sha256": content_digest(files)}
     kitti.atomic_write_text(root / "meta" / "dataset.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
 
 
