@@ -228,16 +228,22 @@ def cmd_run(a) -> int:
 
 
 def cmd_report(a) -> int:
-    from harness.provenance import check_run
-    from harness.report import render
-    from harness.sample import check_destination, publish_sample
-    if a.sample:
-        check_destination(a.run_dir, a.sample)  # before rendering: a refused DIR leaves everything as it was
-    out = render(Path(a.run_dir))
-    print(f"report: {out}")
-    print(f"code: {check_run(a.run_dir)}")
-    if a.sample:
-        print(f"sample: {publish_sample(Path(a.run_dir), Path(a.sample))}")
+    if a.run_dir is None and not a.docs:
+        raise ValueError("give a run folder (reports/NAME) to render, or --docs to write the documents from the sample")
+    if a.run_dir is not None:
+        from harness.provenance import check_run
+        from harness.report import render
+        from harness.sample import check_destination, publish_sample
+        if a.sample:
+            check_destination(a.run_dir, a.sample)  # before rendering: a refused DIR leaves everything as it was
+        out = render(Path(a.run_dir))
+        print(f"report: {out}")
+        print(f"code: {check_run(a.run_dir)}")
+        if a.sample:
+            print(f"sample: {publish_sample(Path(a.run_dir), Path(a.sample))}")
+    if a.docs:
+        from harness.sample_docs import report_docs
+        return report_docs(sample=Path(a.sample) if a.sample else None)
     return 0
 
 
@@ -407,10 +413,14 @@ def _add_run(sub, quiet) -> None:
 def _add_report(sub, quiet) -> None:
     s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report",
                        **command_text("report"))
-    s.add_argument("run_dir", help="the run folder (reports/NAME)")
+    s.add_argument("run_dir", nargs="?", help="the run folder (reports/NAME); optional with --docs")
     s.add_argument("--sample", metavar="DIR", type=_folder,
                    help="then copy the report, tables/*.csv and figures into DIR (the repository's reports/sample), "
                         "replacing a previous sample there; a DIR holding anything else is refused")
+    s.add_argument("--docs", action="store_true",
+                   help="then rewrite the blocks of this checkout's README.md and docs/results.md marked "
+                        "<!-- sample:NAME --> from the sample's tables (--sample DIR, default reports/sample); "
+                        "without a run folder, only that; exit 2 naming the table when a block cannot be made")
     s.set_defaults(func=cmd_report)
 
 

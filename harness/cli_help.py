@@ -51,8 +51,11 @@ COMMANDS = {  # name: (what it does, examples)
              "sotif-bench run --models none --checkpoints imported/ --lidar-model carla --instances 1 "
              "--out reports/published"]),
     "report": ("Render a run folder's tables, figures, report.md and index.html again from its result files; "
-               "with --sample, publish them as the repository's sample (reports/sample).",
-               ["sotif-bench report reports/default", "sotif-bench report reports/default --sample reports/sample"]),
+               "with --sample, publish them as the repository's sample (reports/sample); with --docs, write the "
+               "README's results table and the numbers of docs/results.md from the sample's tables.",
+               ["sotif-bench report reports/default", "sotif-bench report reports/default --sample reports/sample",
+                "sotif-bench report --docs",
+                "sotif-bench report reports/default --sample reports/sample --docs"]),
 }
 
 
