@@ -10,7 +10,8 @@ means nothing. A cap "binds" when it is below 100: for both, n <= 40.
 ``cap`` computes the cap by running KITTI's own threshold rule on n matches; ``ap_text`` writes
 an AP with its count and cap for the command line; ``mark_capped`` turns the AP cells of a table
 whose count column says they are capped or empty into text for the reports (the CSVs keep the
-numbers and their count columns, rounded by ``round_floats``).
+numbers and their count columns, rounded by ``round_floats``); ``num`` and ``span`` write a number
+and a range in prose ("1,554", "31.8-32.6", and "68" where both ends read the same).
 """
 from __future__ import annotations
 
@@ -95,3 +96,15 @@ def _round(v: float, decimals: int) -> float:
     if not math.isfinite(v) or v == 0:
         return v
     return round(v, max(decimals, 1 - math.floor(math.log10(abs(v)))))
+
+
+def num(v, digits: int = 0) -> str:
+    """``v`` with ``digits`` decimals and thousands separated ("1,554", "47.5"); "-0.0" written "0.0"."""
+    text = f"{float(v):,.{digits}f}"
+    return text[1:] if text.lstrip("-").strip("0.,") == "" and text.startswith("-") else text
+
+
+def span(lo, hi, digits: int = 0) -> str:
+    """"31.8-32.6", or one number when both ends read the same ("68", not "68-68")."""
+    a, b = num(lo, digits), num(hi, digits)
+    return a if a == b else f"{a}-{b}"

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from harness.cells import span
 from harness.rain import lidar_twins
 
 
@@ -23,11 +24,11 @@ def sotif_leniency(sotif: pd.DataFrame) -> str:
                                                         "stopping_distance_m"))
     slack = ((d0 - stop) / dv.where(dv > 0)).min()
     found = judged["distance_m"].dropna().astype(float)
-    seen = f"; detections came {found.min():.0f}-{found.max():.0f} m ahead" if len(found) else ""
+    seen = f"; detections came {span(found.min(), found.max())} m ahead" if len(found) else ""
     n_pass = int((judged["verdict"] == "pass").sum())
     return (f"How lenient this is: one scripted cut-out per preset (the study's), not a rate over scenario instances "
             "(the scenario-space section has those). At the lane "
-            f"change the slow car is {d0.min():.0f}-{d0.max():.0f} m ahead and the ego closes at {dv.mean():.1f} m/s; "
+            f"change the slow car is {span(d0.min(), d0.max())} m ahead and the ego closes at {dv.mean():.1f} m/s; "
             f"it needs {stop.max():.0f} m to brake, so a first detection up to {slack:.1f} s after the lane change "
             f"still passes{seen}. {n_pass} of {len(judged)} cells pass: a pass says the car was found in time in this "
             "one instance, not that a margin is left in harder ones.")

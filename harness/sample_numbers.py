@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from harness.cells import num, span
 from harness.kitti import KittiError
 from harness.report import MODEL_LABELS
 
@@ -49,18 +50,6 @@ class SampleTables:
 
 
 # ----------------------------------------------------------------------------- formatting
-def num(v, digits: int = 0) -> str:
-    """``v`` with ``digits`` decimals and thousands separated ("1,554", "47.5"); "-0.0" written "0.0"."""
-    text = f"{float(v):,.{digits}f}"
-    return text[1:] if text.lstrip("-").strip("0.,") == "" and text.startswith("-") else text
-
-
-def span(lo, hi, digits: int = 0) -> str:
-    """"31.8-32.6", or one number when both ends read the same ("68", not "68-68")."""
-    a, b = num(lo, digits), num(hi, digits)
-    return a if a == b else f"{a}-{b}"
-
-
 def _same(values, digits: int = 0, sep: str = " / ") -> str:
     """One number when all read the same, else each."""
     texts = [num(v, digits) for v in values]

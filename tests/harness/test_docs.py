@@ -6,7 +6,7 @@ import shutil
 import pandas as pd
 import pytest
 
-from harness import sample_docs
+from harness import notes, sample_docs
 from harness.kitti import KittiError
 from harness.sample_docs import DOCUMENTS, ROOT, generated, render_blocks, update, write_docs
 from harness.sample_numbers import MissingTable, num, span
@@ -121,6 +121,11 @@ def test_tiny_tables_give_the_known_results_blocks(tmp_path):
 def test_a_range_whose_ends_read_the_same_prints_once():
     assert span(68.2, 67.9) == "68" and span(31.84, 32.61, 1) == "31.8-32.6"
     assert num(1554) == "1,554" and num(-0.04, 1) == "0.0" and num(-0.06, 1) == "-0.1"
+    rows = pd.DataFrame({"weather": ["A", "B"], "model": "m", "detected": True, "distance_m": [60.0, 60.2],
+                         "distance_at_lane_change_m": [68.0, 68.0], "closing_speed_mps": 8.3,
+                         "stopping_distance_m": 19.0, "verdict": "pass"})
+    text = notes.sotif_leniency(rows)  # the report's SOTIF note
+    assert "the slow car is 68 m ahead" in text and "detections came 60 m ahead" in text and "68-68" not in text
 
 
 # ----------------------------------------------------------------------------- missing tables, markers

@@ -101,7 +101,7 @@ def test_render_writes_a_self_contained_report(rendered):
     assert len(srcs) == 9  # rain, heatmap, relative to clear, AP/latency, PR curves, AP/distance, data, BEV, paired differences
     # the reader sees what was run, then the rain story, the models, the heatmaps, the main table, then the rest
     pos = [html.index(s) for s in ("profile</b> quick", "alpha, beta", 'id="rain"', 'alt="rain"',
-                                   "Models at a glance", 'alt="heatmap"', 'alt="heatmap_delta"', "HardRainNight",
+                                   "<h2>Models at a glance", 'alt="heatmap"', 'alt="heatmap_delta"', "HardRainNight",
                                    'id="paper"')]
     assert pos == sorted(pos)
     assert 'id="sotif"' in html and "Recall of two-stage models" in html
@@ -204,6 +204,14 @@ def test_report_reads_on_its_own(rendered):
     assert headers and not [h for h in headers if "_" in h]  # the fake run's model names have no underscore
     assert html.count('<p class="read"><b>How to read:</b>') == html.count("<h2>") == md.count("\n## ")
     assert html.count('<div class="tablebox"><table') == html.count("<table")
+
+
+def test_navigation_lists_the_sections_in_their_order(rendered):
+    html = rendered[1].decode("utf-8")
+    nav = re.search(r"<nav>(.*?)</nav>", html, re.S).group(1)
+    links = re.findall(r'<a href="#([^"]+)">([^<]*)</a>', nav)
+    sections = re.findall(r'<section id="([^"]+)">\s*<h2>([^<]*)</h2>', html)
+    assert links == sections and ("models", "Models at a glance") in links
 
 
 def test_only_a_quick_run_has_the_banner(tmp_path):
