@@ -165,7 +165,7 @@ def _rain_figures(run: tables.Run, t: dict) -> dict:
     if not t["rain"].empty:
         specs["rain"] = ("Headline AP40 3D per model in dry, wet and rain (all times of day) and the noon rain grades "
                          "(soft 4.5, mid 18, hard 50 mm/h), at IoU 0.5 (top) and 0.7 (bottom); bars: 95% bootstrap "
-                         "interval over frames.", rain_figures.rain_figure(t["rain"], MODEL_LABELS))
+                         f"interval over {_resampled(run)}.", rain_figures.rain_figure(t["rain"], MODEL_LABELS))
     matrix = tables.headline_matrix(t["weather_detail"])
     if matrix.empty:
         return specs
@@ -183,6 +183,11 @@ def _rain_figures(run: tables.Run, t: dict) -> dict:
                                   "ClearSunset, ClearNight), in points: red is a loss, blue a gain.",
                                   rain_figures.delta_heatmap(delta, groups, rates, "AP relative to clear weather"))
     return specs
+
+
+def _resampled(run: tables.Run) -> str:
+    """What the per-group intervals resample: whole scenario instances when the evaluation grouped frames by them."""
+    return "scenario instances" if "over instances" in report_space.ci_method(run.results) else "frames"
 
 
 def _threshold(model: dict) -> float:
@@ -240,7 +245,7 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
     by_weather = t["weather_headline"].set_index("weather").reindex(order).reset_index() if order else t["weather_headline"]
     relative = t["relative_ap"].set_index("weather").reindex(order).reset_index() if order else t["relative_ap"]
     out = [
-        _rain_section(t["rain"]),
+        _rain_section(t["rain"], _resampled(run)),
         Section("main", "Headline AP per weather preset",
                 "AP40 3D at IoU 0.7 over all distances with the 2D-height filter off, with 95% intervals by "
                 f"{report_space.ci_method(run.results)} (the SOTIF targets are far and small, so KITTI's moderate/hard filters would ignore "
@@ -301,12 +306,12 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
     return out
 
 
-def _rain_section(long: pd.DataFrame) -> Section:
+def _rain_section(long: pd.DataFrame, resampled: str) -> Section:
     """The report's lead: per model, dry / wet / rain and the rain grades at both IoUs, with their intervals."""
     counts = long.drop_duplicates("condition") if not long.empty else long
     behind = ", ".join(f"{r.condition} {r.n_frames} frames / {r.n_car} cars" for r in counts.itertuples())
     return Section("rain", "Which detectors hold up in rain",
-                   "AP40 3D, all distances, no 2D-height filter, [95% bootstrap interval over frames]. Dry / wet / "
+                   f"AP40 3D, all distances, no 2D-height filter, [95% bootstrap interval over {resampled}]. Dry / wet / "
                    "rain: all presets of that class and time of day; soft / mid / hard rain: the noon rain presets "
                    f"(4.5, 18, 50 mm/h). Behind each cell: {behind or 'no groups'}.",
                    [("", rain.rain_display(long), 1)], ["rain"], lead=True)

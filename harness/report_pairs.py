@@ -1,9 +1,10 @@
 """The report's paired comparisons, proposals-alone AP and training-draw notes (``harness.report`` lays
 them out; everything comes from ``tables/pairs``, ``tables/proposals`` and ``results.json``).
 
-Earlier runs of two draws (docs/results.md, "Training draws") moved val AP by up to ``EARLIER_VAL_SPREAD``
-points (SECOND 84.8 / 91.0) and the SOTIF headline by up to ``EARLIER_HEADLINE_SPREAD`` (Part-A2 74.0 /
-56.5): what a reader should expect of a row that is one draw.
+The two draws of the sample of 2026-11-27 (docs/results.md, History, "Training draws") differed by up to
+``EARLIER_VAL_SPREAD`` points in val AP (SECOND 84.8 / 91.0) and ``EARLIER_HEADLINE_SPREAD`` in the SOTIF
+headline (Part-A2 74.0 / 56.5): what a reader should expect of a row that is one draw, until a run of its
+own has several.
 """
 from __future__ import annotations
 
@@ -15,8 +16,8 @@ from harness.figures import colour
 from harness.pairs_run import bootstrap_settings
 from harness.tables import mean_range, val_ap
 
-EARLIER_VAL_SPREAD = 6.2  # points, docs/results.md: SECOND's val AP over seeds 0 / 1
-EARLIER_HEADLINE_SPREAD = 17.5  # points, docs/results.md: Part-A2's SOTIF headline over seeds 0 / 1
+EARLIER_VAL_SPREAD = 6.2  # points, the sample of 2026-11-27 (docs/results.md, History): SECOND's val AP, seeds 0 / 1
+EARLIER_HEADLINE_SPREAD = 17.5  # points, the same sample: Part-A2's SOTIF headline over seeds 0 / 1
 METRIC_NAMES = {"val_ap3d_moderate": "val AP40 3D moderate @0.7", "headline_ap3d": "SOTIF headline AP40 3D @0.7"}
 
 COLUMN_NAMES = {"model_a": "model A", "model_b": "model B", "mean_diff": "A - B", "ci_lo": "95% low",
@@ -34,9 +35,9 @@ def draws_note(summary: dict) -> str:
     draws = summary.get("draws") or {}
     k = max((len(v) for v in draws.values()), default=1)
     if k <= 1:
-        return (f"Each row is one training draw; earlier runs of two draws moved val AP by up to "
-                f"{EARLIER_VAL_SPREAD:g} points and the SOTIF headline by up to {EARLIER_HEADLINE_SPREAD:g} "
-                "(docs/results.md).")
+        return (f"Each row is one training draw; in an earlier sample (2026-11-27, docs/results.md, History) two "
+                f"draws differed by up to {EARLIER_VAL_SPREAD:g} points in val AP and {EARLIER_HEADLINE_SPREAD:g} "
+                "in the SOTIF headline.")
     spread = {key: max(((r["max"] - r["min"]) for r in (mean_range(get(d)) for d in draws.values())
                         if not np.isnan(r["mean"])), default=np.nan)
               for key, get in (("val", lambda ds: [val_ap(x) for x in ds]),
@@ -97,6 +98,13 @@ def figure_specs(t: dict) -> dict:
                       forest_figure(t["pairs"]))}
 
 
+def _units(pairs: pd.DataFrame) -> str:
+    """"the 300 frames (val AP) and the 42 instances (SOTIF headline)": what each metric's interval resamples."""
+    short = {"val_ap3d_moderate": "val AP", "headline_ap3d": "SOTIF headline"}
+    rows = pairs.drop_duplicates("metric")
+    return " and ".join(f"the {int(r.n_units)} {r.unit}s ({short.get(r.metric, r.metric)})" for r in rows.itertuples())
+
+
 def sections(t: dict, summary: dict) -> list[tuple]:
     """(key, title, intro, tables, figures) of the pairs and proposals sections the run has."""
     out = []
@@ -107,7 +115,7 @@ def sections(t: dict, summary: dict) -> list[tuple]:
                     f"For every two models the difference of val AP (AP40 3D moderate @0.7 on the val set) and of "
                     f"the SOTIF headline (AP40 3D @0.7, filters off, all distances, test split), with a 95 % "
                     f"interval from {n_boot} bootstrap replicates; each replicate draws a training draw per model, "
-                    f"then resamples the {p['unit'].iloc[0]}s, the same for both models. "
+                    f"then resamples {_units(p)}, the same for both models. "
                     f"{int(p['apart'].sum())} of {len(p)} comparisons are apart. {draws_note(summary)}",
                     [("", p, 1)], ["pairs"]))
     if "proposals" in t:

@@ -128,6 +128,15 @@ def test_a_range_whose_ends_read_the_same_prints_once():
     assert "the slow car is 68 m ahead" in text and "detections came 60 m ahead" in text and "68-68" not in text
 
 
+def test_the_report_says_what_each_interval_resamples(tmp_path):
+    from harness import report_pairs
+    pairs = pd.read_csv(tiny_tables(tmp_path / "tables") / "pairs.csv").assign(mean_diff=1.0, ci_lo=0.5, ci_hi=1.5,
+                                                                               apart=True, data="d")
+    intro = report_pairs.sections({"pairs": pairs}, {})[0][2]
+    assert "resamples the 300 frames (val AP) and the 10 instances (SOTIF headline), the same for both" in intro
+    assert "in an earlier sample (2026-11-27, docs/results.md, History) two draws differed" in intro
+
+
 # ----------------------------------------------------------------------------- missing tables, markers
 def test_a_missing_table_names_the_file_and_leaves_its_block(tmp_path):
     tables = tiny_tables(tmp_path / "tables")
