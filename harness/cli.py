@@ -406,7 +406,7 @@ def _add_run(sub, quiet) -> None:
                         "narrower intervals for prediction time, not training time")
     s.add_argument("--sweep-instances", type=_positive_int,
                    help="instances of the weather sweep set over rain rate, fog visibility and road water "
-                        "(default: the profile's, 12 in default)")
+                        "(default: the profile's, 30 in default)")
     s.set_defaults(func=cmd_run)
 
 
