@@ -156,7 +156,8 @@ def report_docs(root=ROOT, sample=None, check: bool = False) -> int:
         docs = generated(root, tables_dir)
         problems = [p for _, _, issues in docs.values() for p in issues]
         stale = [rel for rel, (old, new, _) in docs.items() if new != old]
-        problems += [f"{rel}: differs from the sample's tables (sotif-bench report --docs rewrites it)" for rel in stale]
+        problems += [f"{rel}: differs from the sample's tables (sotif-bench report --docs rewrites it)"
+                     for rel in stale]
     else:
         changed, problems = write_docs(root, sample)
         for rel in DOCUMENTS:

@@ -14,8 +14,8 @@ from harness.cells import num, span
 from harness.kitti import KittiError
 from harness.report import MODEL_LABELS
 
-AXES = {"rain": ("rain_rate_mmh", "rain", "mm/h"), "fog": ("fog_mor_m", "fog", "m"),  # sweep_axis -> column, words
-        "water": ("road_water", "water", "")}
+AXES = {"rain": ("rain_rate_mmh", "rain", "mm/h", 1), "fog": ("fog_mor_m", "fog", "m", 0),  # sweep_axis ->
+        "water": ("road_water", "water", "", 2)}  # (column, word, unit, decimals)
 AXIS_WORDS = {"rain": "rain", "fog": "fog visibility", "water": "road water"}
 PAINT = {"nir_black": "NIR-black"}
 BODY = {"suv": "SUV"}
@@ -172,15 +172,15 @@ def data_sets(t: SampleTables) -> dict:
     """The three data sets of the sample: SOTIF, sweep, val."""
     ov = t("overview", ["val frames"])
     sweep = _instances(t, "sweep")
-    t("sotif_instances", ["sweep_axis", "sc_ego_speed_kmh", "sc_slow_speed_kmh", *(c for c, _, _ in AXES.values())])
+    t("sotif_instances", ["sweep_axis", "sc_ego_speed_kmh", "sc_slow_speed_kmh", *(a[0] for a in AXES.values())])
     per_axis = sweep.groupby("sweep_axis", sort=False).size()
     axes = []
     for axis, rows in sweep.groupby("sweep_axis", sort=False):
-        column, _, unit = AXES.get(axis, (None, axis, ""))
-        values = rows[column] if column else pd.Series(dtype=float)
-        digits = 2 if axis == "water" else (1 if axis == "rain" else 0)
-        axes.append(f"{AXIS_WORDS.get(axis, axis)} {span(values.min(), values.max(), digits)}{' ' + unit if unit else ''}"
-                    if len(values) else AXIS_WORDS.get(axis, axis))
+        if axis not in AXES:
+            axes.append(AXIS_WORDS.get(axis, axis))
+            continue
+        column, _, unit, digits = AXES[axis]
+        axes.append(f"{AXIS_WORDS[axis]} {span(rows[column].min(), rows[column].max(), digits)} {unit}".rstrip())
     return {"sotif": sotif_counts(t), "drawn": _drawn(t), "sweep_instances": len(sweep),
             "per_axis": f"{per_axis.iloc[0]} per weather axis" if per_axis.nunique() == 1 else
             ", ".join(f"{AXIS_WORDS.get(a, a)} {n}" for a, n in per_axis.items()), "axes": axes,
@@ -190,11 +190,10 @@ def data_sets(t: SampleTables) -> dict:
 
 
 def _condition(row) -> str:
-    column, word, unit = AXES.get(row["sweep_axis"], (None, str(row["sweep_axis"]), ""))
-    if column is None:
-        return word
-    digits = {"rain": 1, "water": 2}.get(row["sweep_axis"], 0)
-    return f"{word} {num(row[column], digits)}{' ' + unit if unit else ''}"
+    if row["sweep_axis"] not in AXES:
+        return str(row["sweep_axis"])
+    column, word, unit, digits = AXES[row["sweep_axis"]]
+    return f"{word} {num(row[column], digits)} {unit}".rstrip()
 
 
 def _margin(v) -> str:
@@ -204,7 +203,7 @@ def _margin(v) -> str:
 def sweep_instances(t: SampleTables) -> dict:
     """One row per sweep instance: its condition, slow vehicle, closing speed, the ideal margin and each model's."""
     inst = t("sotif_instances", ["sweep_axis", "closing_speed_mps", "sc_slow_paint", "sc_slow_body",
-                                 *(c for c, _, _ in AXES.values())])
+                                 *(a[0] for a in AXES.values())])
     sweep = inst[inst["set"] == "sweep"]
     if sweep.empty:
         raise MissingTable(t.folder / "sotif_instances.csv", "no instance of the 'sweep' set")

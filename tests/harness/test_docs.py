@@ -91,7 +91,8 @@ def _instances(models) -> pd.DataFrame:
 
 def test_tiny_tables_give_the_known_readme_rows(tmp_path):
     text = render_blocks(tiny_tables(tmp_path / "tables"))["readme-table"]
-    assert "| PointPillars | 79.4 | 59.8 | 80.0 / 79.0 / 78.0 | 77.0 / 76.0 / 75.0 | 10/10 / 1/2 | 35 ms | 3.9 MB |" in text
+    assert ("| PointPillars | 79.4 | 59.8 | 80.0 / 79.0 / 78.0 | 77.0 / 76.0 / 75.0 | 10/10 / 1/2 | 35 ms | 3.9 MB |"
+            in text)
     assert "| SECOND | 90.8 | 61.9 | 85.0 / 84.0 / 83.0 | 82.0 / 81.0 / 80.0 | 10/10 / 0/2 | 81 ms | 6.5 MB |" in text
     words = " ".join(text.split())
     assert "(5 presets x 2 instances, 100 frames at 10 Hz in the deciding window, 300 cars)" in words
@@ -207,6 +208,6 @@ def test_an_expected_block_missing_or_twice_is_a_problem():
     blocks = {"data-sets": "new"}
     doc = "<!-- sample:data-sets -->\nold\n<!-- /sample -->\n<!-- sample:data-sets -->\n<!-- /sample -->\n"
     text, problems = update(doc, blocks, "x.md", ("data-sets", "how-to-read"))
-    assert text == "<!-- sample:data-sets -->\nnew\n<!-- /sample -->\n<!-- sample:data-sets -->\nnew\n<!-- /sample -->\n"
+    assert text == "<!-- sample:data-sets -->\nnew\n<!-- /sample -->\n" * 2
     assert problems == ["x.md: no block 'how-to-read' (mark it <!-- sample:how-to-read --> ... <!-- /sample -->)",
                         "x.md: block 'data-sets' appears 2 times"]
