@@ -20,7 +20,7 @@ def test_anchors_at_corners_and_centres():
     a = published_anchors(RANGE, (4, 6), cfg).reshape(4, 6, 3, 2, 7).numpy()
     np.testing.assert_allclose(a[2, 5, 1, 1], [16.0, -8 + 2 * 16 / 3, -0.6 + 1.73 / 2, 0.8, 0.6, 1.73, 1.57], rtol=1e-6)
     np.testing.assert_allclose(a[0, 3, 0, 0, :3], [3 * 16 / 5, -8.0, -1.0], rtol=1e-6)
-    centred = published_anchors(RANGE, (4, 6), dataclasses.replace(cfg, corners=False)).reshape(4, 6, 3, 2, 7)
+    centred = published_anchors(RANGE, (4, 6), dataclasses.replace(cfg, anchor_grid="centres")).reshape(4, 6, 3, 2, 7)
     np.testing.assert_allclose(centred[1, 2, 2, 0, :2].numpy(), [2.5 * 16 / 6, -8 + 1.5 * 4], rtol=1e-6)
 
 
@@ -124,7 +124,7 @@ def test_both_post_processings_export_and_match_torch(tmp_path):
     from models.export import export_onnx, run_onnx
     points = torch.rand(50, 4)
     for cfg in (PublishedHeadConfig(nms_pre=100, max_out=20),
-                PublishedHeadConfig(nms_pre=60, max_out=15, post="mmdet3d", corners=False, dir_offset=MMDET3D_DIR_OFFSET)):
+                PublishedHeadConfig(nms_pre=60, max_out=15, post="mmdet3d", anchor_grid="centres", dir_offset=MMDET3D_DIR_OFFSET)):
         model = _HeadOnly(cfg).eval()
         export_onnx(model, tmp_path / f"{cfg.post}.onnx", {})
         with torch.no_grad():
