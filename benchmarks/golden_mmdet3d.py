@@ -2,8 +2,9 @@
 
     PYTHONPATH=MMPKGS:SPCONV python -m benchmarks.golden_mmdet3d --mmdet3d PATH/mmdetection3d [--out tests/golden]
 
-needs mmengine, mmcv-lite (no compiled ops), mmdet 3.x and spconv 2.x (CPU) importable next to
-this project's torch, and a source checkout of MMDetection3D 1.4 (never built or installed: its
+needs mmengine, mmcv-lite (no compiled ops), mmdet 3.x and spconv 2.x (CPU; 2.3.8 with the cumm
+0.7.x it requires: with cumm 0.5 its strided convs return no voxels) importable next to this
+project's torch, and a source checkout of MMDetection3D 1.4 (never built or installed: its
 package is imported from the checkout). mmcv-lite lacks ``mmcv._ext``; a stand-in module gives
 the three kernels this network calls, on CPU, with the compiled kernels' contracts
 (``mmcv/ops/csrc``): ``dynamic_voxelize_forward`` (float32 floor((p - lo) / size), -1 outside
@@ -19,6 +20,15 @@ tensor names and shapes and module versions (no weights), the frame, sampled int
 bird's-eye map entering the 2D backbone, the class logits) and the final boxes of every class
 (gravity centre, our box row) with labels and scores. ``tests/models/test_published_golden_mmdet3d.py``
 rebuilds the checkpoint from the rule, imports it and compares.
+
+The reference runs on one thread. spconv 2.3.8's CPU convolution (gather, ``torch.mm``,
+``SpconvOps.scatter_add_cpu`` per kernel offset) sums wrongly when OpenMP runs its scatter-add on
+more than one thread: on 2 threads a few rows of 7,000 distinct output rows came out wrong on
+about half the calls (off by up to 5, where ``index_add`` agrees exactly on one thread), so the
+sparse encoder's output changed from call to call (up to 0.35 on the bird's-eye map, 31 or 32
+Car boxes). On one thread the convolution equals a float64 sum over its own index pairs to 1e-7
+and repeats exactly; ``golden`` runs the test step twice and writes nothing unless the two agree
+bit for bit.
 """
 from __future__ import annotations
 
@@ -30,7 +40,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.golden_published import bev_iou, frame, sample
+from benchmarks.golden_published import frame, iou, polygon, sample
 from benchmarks.golden_weights import RULE, fill
 
 CONFIG = "configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py"
@@ -64,13 +74,13 @@ def nms_rotated(dets, scores, order, dets_sorted, labels, iou_threshold, multi_l
     assert not multi_label
     rank = scores.sort(0, descending=True)[1]
     b = dets.double().numpy()
-    as_7 = np.c_[b[:, :2], np.zeros(len(b)), b[:, 2:4], np.ones(len(b)), b[:, 4]]  # bev_iou takes 7-value rows
+    polys = [polygon(np.r_[r[:2], 0.0, r[2:4], 1.0, r[4]]) for r in b]  # polygon takes 7-value rows
     keep, dropped = [], set()
     for n, i in enumerate(rank.tolist()):
         if i in dropped:
             continue
         keep.append(i)
-        dropped.update(j for j in rank[n + 1:].tolist() if j not in dropped and bev_iou(as_7[i], as_7[j]) >= iou_threshold)
+        dropped.update(j for j in rank[n + 1:].tolist() if j not in dropped and iou(polys[i], polys[j]) >= iou_threshold)
     return torch.tensor(keep, dtype=torch.long)
 
 
@@ -139,7 +149,11 @@ def golden(root: Path, out: Path) -> Path:
     ckpt._metadata = meta  # spconv 2.x layout: version 2 on every sparse module, as a published 1.4 file
     model.load_state_dict(ckpt, strict=True)
     points = frame(SEED)
-    res = run(model, cfg, points)
+    torch.set_num_threads(1)  # spconv's CPU scatter-add races on more threads (module docstring)
+    res, again = run(model, cfg, points), run(model, cfg, points)
+    differ = [k for k in res if not np.array_equal(np.asarray(res[k]), np.asarray(again[k]))]
+    if differ:
+        raise RuntimeError(f"two runs of the reference differ in {', '.join(differ)}: no golden data written")
     rng = np.random.Generator(np.random.PCG64(SEED + 1))
     bev_idx, bev_val = sample(res["bev"], rng)
     cls_idx, cls_val = sample(res["cls"], rng)
