@@ -1,9 +1,10 @@
 """The exported ONNX files of the imported published networks against the references' golden boxes.
 
-    python -m benchmarks.golden_onnx [--models pointpillars,second] [--keep DIR]
+    python -m benchmarks.golden_onnx [--models pointpillars,second,dv_second] [--keep DIR]
 
-For each golden file of ``tests/golden`` (``benchmarks/golden_published.py``): rebuilds the reference
-checkpoint from the seeded rule, imports it (``sotif-bench import``'s code), exports it
+For each golden file of ``tests/golden`` (``benchmarks/golden_published.py``, OpenPCDet;
+``benchmarks/golden_mmdet3d.py``, MMDetection3D): rebuilds the reference checkpoint from the seeded
+rule in the reference's file format, imports it (``sotif-bench import``'s code), exports it
 (``sotif-bench export``'s code, one self-contained file), runs the file with onnxruntime on the golden
 frame and prints the export time, the number of Car boxes of both and the largest differences of
 the box values (yaw modulo 2 pi) and scores, matched in score order. Exits 1 when a count differs
@@ -22,14 +23,18 @@ from pathlib import Path
 
 from harness.import_weights import import_checkpoint
 from models.export import export_checkpoint, run_onnx
-from tests.models.test_published_golden import car_boxes, differences, load, reference_file
+from tests.models import test_published_golden as openpcdet_golden
+from tests.models import test_published_golden_mmdet3d as mmdet3d_golden
+from tests.models.test_published_golden import car_boxes, differences, load
 
 BOX_TOL, SCORE_TOL = 1e-3, 1e-4
+SOURCES = {"pointpillars": "openpcdet", "second": "openpcdet", "dv_second": "mmdet3d"}  # model -> golden file's source
+REFERENCE_FILE = {"openpcdet": openpcdet_golden.reference_file, "mmdet3d": mmdet3d_golden.reference_file}
 
 
 def check(source: str, model: str, work: Path) -> bool:
     g = load(source, model)
-    reference_file(g, work / f"{model}_ref.pth")
+    REFERENCE_FILE[source](g, work / f"{model}_ref.pth")
     import_checkpoint(work / f"{model}_ref.pth", source, model, work / f"{model}.pt")
     start = time.perf_counter()
     export_checkpoint(work / f"{model}.pt", work / f"{model}.onnx", expected_model=model)
@@ -48,13 +53,13 @@ def check(source: str, model: str, work: Path) -> bool:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--models", default="pointpillars,second")
+    p.add_argument("--models", default=",".join(SOURCES), help=f"a comma-separated subset of {', '.join(SOURCES)}")
     p.add_argument("--keep", type=Path, help="keep the checkpoints and ONNX files in this folder")
     a = p.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
         work = a.keep or Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
-        ok = [check("openpcdet", model, work) for model in a.models.split(",")]
+        ok = [check(SOURCES[model], model, work) for model in a.models.split(",")]
     return 0 if all(ok) else 1
 
 
