@@ -34,8 +34,9 @@ MMDET3D_DIR_OFFSET = -math.pi / 2  # Anchor3DHead's default dir_offset (dir_limi
 
 @dataclass(frozen=True)
 class PublishedHeadConfig(HeadConfig):
-    """A 3-class published head; ``anchor_size`` / ``anchor_z`` of the base are unused (each class
-    has its own), the thresholds and NMS fields are the published test config's."""
+    """A published head (3 classes on KITTI; MMDetection3D's Car config: 1); ``anchor_size`` /
+    ``anchor_z`` of the base are unused (each class has its own), the thresholds and NMS fields are
+    the published test config's."""
 
     rotations: tuple[float, ...] = (0.0, 1.57)  # both references' anchor_rotations
     classes: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")  # the config's class order

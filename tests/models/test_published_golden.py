@@ -19,8 +19,9 @@ GOLDEN = Path(__file__).parents[1] / "golden"
 CASES = [("openpcdet", "pointpillars"), ("openpcdet", "second")]
 
 
-def load(source: str, model: str) -> dict:
-    g = dict(np.load(GOLDEN / f"{source}_{model}.npz"))
+def load(source: str, model: str, config: str = "") -> dict:
+    """The golden data of a published network (``config``: a named other config of it, e.g. ``car``)."""
+    g = dict(np.load(GOLDEN / f"{source}_{model}{'_' + config if config else ''}.npz"))
     assert str(g["rule"]) == RULE
     dims, values = g["shape_dims"], g["shape_values"]
     ends = np.cumsum(dims)

@@ -1,4 +1,4 @@
-"""The imported DV-SECOND against golden data of MMDetection3D 1.4's own code
+"""The imported DV-SECOND (3-class and Car configs) against golden data of MMDetection3D 1.4's own code
 (``benchmarks/golden_mmdet3d.py``: its registry-built detector on CPU, random weights by the
 seeded rule in its spconv 2.x checkpoint layout, one frame through its test step on one thread,
 where spconv's CPU convolution repeats exactly). The
@@ -8,6 +8,7 @@ and run: the bird's-eye map, the class logits and the final Car boxes must match
 import collections
 from pathlib import Path
 
+import pytest
 import torch
 
 from benchmarks.golden_weights import fill
@@ -30,8 +31,9 @@ def reference_file(g: dict, path: Path) -> None:
     torch.save({"meta": meta, "state_dict": state}, path)
 
 
-def test_imported_dv_second_is_mmdet3d(tmp_path):
-    g = load("mmdet3d", "dv_second")
+@pytest.mark.parametrize("config", ["", "car"], ids=["3class", "car"])
+def test_imported_dv_second_is_mmdet3d(config, tmp_path):
+    g = load("mmdet3d", "dv_second", config)
     reference_file(g, tmp_path / "ref.pth")
     import_checkpoint(tmp_path / "ref.pth", "mmdet3d", "dv_second", tmp_path / "ours.pt")
     assert_matches_golden(zoo.load_checkpoint(tmp_path / "ours.pt")[0], g)
