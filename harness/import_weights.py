@@ -61,8 +61,11 @@ def read_published(path: Path, source: str) -> tuple[dict, dict, dict]:
 
 
 def _meta_classes(meta: dict) -> list[str] | None:
-    classes = (meta.get("dataset_meta") or {}).get("classes") if isinstance(meta.get("dataset_meta"), dict) else None
-    return list(classes) if isinstance(classes, (list, tuple)) else None
+    """The file's classes as MMDetection3D's ``init_model`` reads them: ``meta["dataset_meta"]["classes"]``
+    (1.x files), else ``meta["CLASSES"]`` (files saved by the mmcv 1.x runner: the published DV-SECOND ones)."""
+    dataset_meta = meta.get("dataset_meta")
+    classes = dataset_meta.get("classes") if isinstance(dataset_meta, dict) else meta.get("CLASSES")
+    return [str(c) for c in classes] if isinstance(classes, (list, tuple)) else None
 
 
 def map_names(state: dict, source: str, model: str) -> tuple[dict[str, tuple[str, str]], list[str]]:

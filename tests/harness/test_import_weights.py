@@ -150,6 +150,9 @@ def test_dv_second_car_config_imports_into_a_one_class_head(tmp_path):
         shapes[f"bbox_head.{name}.weight"] = (2 * per_anchor, *shapes[f"bbox_head.{name}.weight"][1:])
         shapes[f"bbox_head.{name}.bias"] = (2 * per_anchor,)
     mmdet3d_file(tmp_path / "car.pth", random_state(shapes), True, classes=("Car",))
+    ckpt = torch.load(tmp_path / "car.pth", weights_only=True)  # as the mmcv 1.x runner saved it (the published file)
+    ckpt["meta"] = {"mmdet3d_version": "0.1.0", "CLASSES": ("Car",)}
+    torch.save(ckpt, tmp_path / "car.pth")
     info = import_checkpoint(tmp_path / "car.pth", "mmdet3d", "dv_second", tmp_path / "car.pt")
     assert info["classes"] == ["Car"] and info["config"].endswith("second_dv_secfpn_8xb6-80e_kitti-3d-car.py")
     head = zoo.load_checkpoint(tmp_path / "car.pt")[0].head
