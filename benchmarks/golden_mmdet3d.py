@@ -1,6 +1,7 @@
 """Golden data of MMDetection3D's DV-SECOND (KITTI 3-class and Car), made by MMDetection3D's own code.
 
-    PYTHONPATH=MMPKGS:SPCONV python -m benchmarks.golden_mmdet3d --mmdet3d PATH/mmdetection3d [--config 3class|car] [--out tests/golden]
+    PYTHONPATH=MMPKGS:SPCONV python -m benchmarks.golden_mmdet3d --mmdet3d PATH/mmdetection3d \
+        [--config 3class|car] [--out tests/golden]
 
 needs mmengine, mmcv-lite (no compiled ops), mmdet 3.x and spconv 2.x (CPU; 2.3.8 with the cumm
 0.7.x it requires: with cumm 0.5 its strided convs return no voxels) importable next to this
@@ -87,7 +88,8 @@ def nms_rotated(dets, scores, order, dets_sorted, labels, iou_threshold, multi_l
         if i in dropped:
             continue
         keep.append(i)
-        dropped.update(j for j in rank[n + 1:].tolist() if j not in dropped and iou(polys[i], polys[j]) >= iou_threshold)
+        dropped.update(j for j in rank[n + 1:].tolist()
+                       if j not in dropped and iou(polys[i], polys[j]) >= iou_threshold)
     return torch.tensor(keep, dtype=torch.long)
 
 
