@@ -1,24 +1,37 @@
-"""Golden data of MMDetection3D's DV-SECOND (3-class KITTI), made by MMDetection3D's own code.
+"""Golden data of MMDetection3D's DV-SECOND (KITTI 3-class and Car), made by MMDetection3D's own code.
 
-    PYTHONPATH=MMPKGS:SPCONV python -m benchmarks.golden_mmdet3d --mmdet3d PATH/mmdetection3d [--out tests/golden]
+    PYTHONPATH=MMPKGS:SPCONV python -m benchmarks.golden_mmdet3d --mmdet3d PATH/mmdetection3d \
+        [--config 3class|car] [--out tests/golden]
 
-needs mmengine, mmcv-lite (no compiled ops), mmdet 3.x and spconv 2.x (CPU) importable next to
-this project's torch, and a source checkout of MMDetection3D 1.4 (never built or installed: its
+needs mmengine, mmcv-lite (no compiled ops), mmdet 3.x and spconv 2.x (CPU; 2.3.8 with the cumm
+0.7.x it requires: with cumm 0.5 its strided convs return no voxels) importable next to this
+project's torch, and a source checkout of MMDetection3D 1.4 (never built or installed: its
 package is imported from the checkout). mmcv-lite lacks ``mmcv._ext``; a stand-in module gives
 the three kernels this network calls, on CPU, with the compiled kernels' contracts
 (``mmcv/ops/csrc``): ``dynamic_voxelize_forward`` (float32 floor((p - lo) / size), -1 outside
 the grid), ``dynamic_point_to_voxel_forward`` (sorted unique voxels, feature mean) and
 ``nms_rotated`` (greedy, IoU >= threshold suppresses, exact rotated-rectangle IoU from shapely).
 Everything else is MMDetection3D's: the detector is built by its registry from
-``configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py``, its
+``configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py`` (or the Car
+config ``second_dv_secfpn_8xb6-80e_kitti-3d-car.py``), its
 checkpoint tensors are filled by the seeded rule of ``benchmarks.golden_weights`` and loaded
 through its spconv 2.x loader (``_metadata`` version 2, as a published 1.4 file), the frame goes
 through ``LiDARPoints.in_range_3d`` (the test pipeline's ``PointsRangeFilter``) and
-``model.test_step``. It writes ``tests/golden/mmdet3d_dv_second.npz``: the rule's seed, the
+``model.test_step``. It writes ``tests/golden/mmdet3d_dv_second.npz`` (Car config:
+``mmdet3d_dv_second_car.npz``): the rule's seed, the
 tensor names and shapes and module versions (no weights), the frame, sampled intermediates (the
 bird's-eye map entering the 2D backbone, the class logits) and the final boxes of every class
 (gravity centre, our box row) with labels and scores. ``tests/models/test_published_golden_mmdet3d.py``
 rebuilds the checkpoint from the rule, imports it and compares.
+
+The reference runs on one thread. spconv 2.3.8's CPU convolution (gather, ``torch.mm``,
+``SpconvOps.scatter_add_cpu`` per kernel offset) sums wrongly when OpenMP runs its scatter-add on
+more than one thread: on 2 threads a few rows of 7,000 distinct output rows came out wrong on
+about half the calls (off by up to 5, where ``index_add`` agrees exactly on one thread), so the
+sparse encoder's output changed from call to call (up to 0.35 on the bird's-eye map, 31 or 32
+Car boxes). On one thread the convolution equals a float64 sum over its own index pairs to 1e-7
+and repeats exactly; ``golden`` runs the test step twice and writes nothing unless the two agree
+bit for bit.
 """
 from __future__ import annotations
 
@@ -30,11 +43,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.golden_published import bev_iou, frame, sample
+from benchmarks.golden_published import frame, iou, polygon, sample
 from benchmarks.golden_weights import RULE, fill
 
-CONFIG = "configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py"
-SEED, CLS_BIAS = 304, -3.0  # 50 boxes: 31 Car, 17 Pedestrian, 2 Cyclist
+# name -> (config file, golden file, weight seed, class-logit bias)
+CONFIGS = {
+    "3class": ("configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py",
+               "mmdet3d_dv_second.npz", 304, -3.0),  # 50 boxes: 31 Car, 17 Pedestrian, 2 Cyclist
+    "car": ("configs/dynamic_voxelization/second_dv_secfpn_8xb6-80e_kitti-3d-car.py",
+            "mmdet3d_dv_second_car.npz", 304, -2.5),  # 42 boxes, all Car
+}
 
 
 def dynamic_voxelize_forward(points, voxel_size, coors_range, coors, NDim=3):
@@ -64,13 +82,14 @@ def nms_rotated(dets, scores, order, dets_sorted, labels, iou_threshold, multi_l
     assert not multi_label
     rank = scores.sort(0, descending=True)[1]
     b = dets.double().numpy()
-    as_7 = np.c_[b[:, :2], np.zeros(len(b)), b[:, 2:4], np.ones(len(b)), b[:, 4]]  # bev_iou takes 7-value rows
+    polys = [polygon(np.r_[r[:2], 0.0, r[2:4], 1.0, r[4]]) for r in b]  # polygon takes 7-value rows
     keep, dropped = [], set()
     for n, i in enumerate(rank.tolist()):
         if i in dropped:
             continue
         keep.append(i)
-        dropped.update(j for j in rank[n + 1:].tolist() if j not in dropped and bev_iou(as_7[i], as_7[j]) >= iou_threshold)
+        dropped.update(j for j in rank[n + 1:].tolist()
+                       if j not in dropped and iou(polys[i], polys[j]) >= iou_threshold)
     return torch.tensor(keep, dtype=torch.long)
 
 
@@ -98,11 +117,11 @@ def import_mmdet3d(root: Path) -> None:
     DefaultScope.get_instance("golden_mmdet3d", scope_name="mmdet3d")
 
 
-def build(root: Path):
-    """MMDetection3D's detector of the config, in eval mode."""
+def build(root: Path, config: str):
+    """MMDetection3D's detector of a config file, in eval mode."""
     from mmengine.config import Config
     from mmdet3d.registry import MODELS
-    cfg = Config.fromfile(str(root / CONFIG))
+    cfg = Config.fromfile(str(root / config))
     return MODELS.build(cfg.model).eval(), cfg
 
 
@@ -129,23 +148,28 @@ def run(model, cfg, points: np.ndarray) -> dict:
             "boxes": rows.numpy(), "scores": out.scores_3d.numpy(), "labels": out.labels_3d.numpy()}
 
 
-def golden(root: Path, out: Path) -> Path:
-    model, cfg = build(root)
+def golden(root: Path, out: Path, which: str = "3class") -> Path:
+    config, name, seed, cls_bias = CONFIGS[which]
+    model, cfg = build(root, config)
     state = model.state_dict()
     names, shapes = list(state), [tuple(t.shape) for t in state.values()]
     meta = state._metadata
-    values = fill(names, shapes, SEED, CLS_BIAS)
+    values = fill(names, shapes, seed, cls_bias)
     ckpt = type(state)((n, torch.from_numpy(v)) for n, v in values.items())
     ckpt._metadata = meta  # spconv 2.x layout: version 2 on every sparse module, as a published 1.4 file
     model.load_state_dict(ckpt, strict=True)
-    points = frame(SEED)
-    res = run(model, cfg, points)
-    rng = np.random.Generator(np.random.PCG64(SEED + 1))
+    points = frame(seed)
+    torch.set_num_threads(1)  # spconv's CPU scatter-add races on more threads (module docstring)
+    res, again = run(model, cfg, points), run(model, cfg, points)
+    differ = [k for k in res if not np.array_equal(np.asarray(res[k]), np.asarray(again[k]))]
+    if differ:
+        raise RuntimeError(f"two runs of the reference differ in {', '.join(differ)}: no golden data written")
+    rng = np.random.Generator(np.random.PCG64(seed + 1))
     bev_idx, bev_val = sample(res["bev"], rng)
     cls_idx, cls_val = sample(res["cls"], rng)
-    path = out / "mmdet3d_dv_second.npz"
+    path = out / name
     versions = [-1 if (meta[k] or {}).get("version") is None else int(meta[k]["version"]) for k in meta]
-    np.savez_compressed(path, rule=RULE, seed=SEED, cls_bias=CLS_BIAS, names=np.array(names),
+    np.savez_compressed(path, rule=RULE, seed=seed, cls_bias=cls_bias, names=np.array(names),
                         shape_dims=np.array([len(s) for s in shapes]), shape_values=np.array([d for s in shapes for d in s]),
                         meta_keys=np.array(list(meta)), meta_versions=np.array(versions), points=points,
                         num_points=res["num_points"], bev_index=bev_idx, bev_value=bev_val, cls_index=cls_idx,
@@ -159,11 +183,12 @@ def golden(root: Path, out: Path) -> Path:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--mmdet3d", type=Path, required=True, help="a source checkout of MMDetection3D 1.4")
+    p.add_argument("--config", choices=list(CONFIGS), default="3class")
     p.add_argument("--out", type=Path, default=Path("tests/golden"))
     a = p.parse_args(argv)
     import_mmdet3d(a.mmdet3d)
     a.out.mkdir(parents=True, exist_ok=True)
-    golden(a.mmdet3d, a.out)
+    golden(a.mmdet3d, a.out, a.config)
     return 0
 
 

@@ -9,7 +9,10 @@ every sparse conv's shape (a 4 -> 16 conv tells them apart; a 16 -> 16 conv cann
 the whole file must agree). Every tensor goes through the table of ``harness.published_maps``;
 a tensor no rule takes, a tensor of ours no rule fills, or a shape that does not fit is an error
 listing them, and nothing is written. The result is a checkpoint of our ``kitti`` profile
-(``models.zoo.load_checkpoint`` reads it) with ``published`` = where the weights came from.
+(``models.zoo.load_checkpoint`` reads it) with ``published`` = where the weights came from. A file
+whose recorded classes are those of another published config of the network (``CLASS_CONFIGS``:
+MMDetection3D's Car-only DV-SECOND) gets the ``kitti`` network with that config's head: only
+those classes' anchor sets and channels, in the checkpoint's config.
 """
 from __future__ import annotations
 
@@ -22,7 +25,7 @@ from pathlib import Path
 import torch
 
 from harness.kitti import atomic_write_bytes
-from harness.published_maps import CONFIG_FILES, IGNORED, SPARSE, TABLES
+from harness.published_maps import CLASS_CONFIGS, CONFIG_FILES, IGNORED, SPARSE, TABLES
 from models import zoo
 
 SOURCES = ("openpcdet", "mmdet3d")
@@ -58,8 +61,11 @@ def read_published(path: Path, source: str) -> tuple[dict, dict, dict]:
 
 
 def _meta_classes(meta: dict) -> list[str] | None:
-    classes = (meta.get("dataset_meta") or {}).get("classes") if isinstance(meta.get("dataset_meta"), dict) else None
-    return list(classes) if isinstance(classes, (list, tuple)) else None
+    """The file's classes as MMDetection3D's ``init_model`` reads them: ``meta["dataset_meta"]["classes"]``
+    (1.x files), else ``meta["CLASSES"]`` (files saved by the mmcv 1.x runner: the published DV-SECOND ones)."""
+    dataset_meta = meta.get("dataset_meta")
+    classes = dataset_meta.get("classes") if isinstance(dataset_meta, dict) else meta.get("CLASSES")
+    return [str(c) for c in classes] if isinstance(classes, (list, tuple)) else None
 
 
 def map_names(state: dict, source: str, model: str) -> tuple[dict[str, tuple[str, str]], list[str]]:
@@ -109,8 +115,10 @@ def _sparse_layout(path: Path, source: str, sparse: dict, module_meta: dict) -> 
     return {ours: next(iter(common), None) for ours in sparse}
 
 
-def convert(path: Path, source: str, model: str, state: dict, module_meta: dict, net) -> dict[str, torch.Tensor]:
-    """Our state dict from the reference's, or PublishedFileError listing every missing, extra and misfit tensor."""
+def convert(path: Path, source: str, model: str, state: dict, module_meta: dict, net,
+            config: str) -> dict[str, torch.Tensor]:
+    """Our state dict from the reference's, or PublishedFileError listing every missing, extra and misfit
+    tensor (``config``: the published config file ``net`` is, for the message)."""
     ours = net.state_dict()
     mapped, extra = map_names(state, source, model)
     missing = sorted(set(ours) - set(mapped))
@@ -133,9 +141,27 @@ def convert(path: Path, source: str, model: str, state: dict, module_meta: dict,
                 (("tensors of ours no reference tensor fills", missing), ("reference tensors with no place", extra),
                  ("shapes that do not fit", misfit)) if names]
     if problems:
-        raise PublishedFileError(f"{path}: does not hold the network of {CONFIG_FILES[(source, model)]}: "
+        raise PublishedFileError(f"{path}: does not hold the network of {config}: "
                                  + "; ".join(problems))
     return out
+
+
+def published_network(path: Path, source: str, model: str, classes: list[str] | None):
+    """(our ``kitti`` network of the published config whose classes are ``classes``, that config's file);
+    ``classes`` None: the main config. Other classes are a PublishedFileError."""
+    net = zoo.build(model, "kitti")
+    head = net.cfg.head
+    if classes is None or classes == list(head.classes):
+        return net, CONFIG_FILES[(source, model)]
+    config = CLASS_CONFIGS.get((source, model, tuple(classes)))
+    if config is None:
+        known = [list(head.classes)] + [list(c) for s, m, c in CLASS_CONFIGS if (s, m) == (source, model)]
+        raise PublishedFileError(f"{path}: its classes {classes} are not those of a published config of this "
+                                 f"network ({' or '.join(map(str, known))})")
+    keep = [head.classes.index(c) for c in classes]
+    head = dataclasses.replace(head, classes=tuple(classes), sizes=tuple(head.sizes[i] for i in keep),
+                               bottoms=tuple(head.bottoms[i] for i in keep))
+    return zoo.detector_class(model)(dataclasses.replace(net.cfg, head=head)), config
 
 
 def import_checkpoint(path, source: str, model: str, out) -> dict:
@@ -147,13 +173,10 @@ def import_checkpoint(path, source: str, model: str, out) -> dict:
         known = ", ".join(f"--from {s} --model {m}" for s, m in TABLES)
         raise ValueError(f"--model {model} --from {source}: no published network is mapped (known: {known})")
     state, module_meta, info = read_published(path, source)
-    net = zoo.build(model, "kitti")
-    classes = list(net.cfg.head.classes)
-    if info.get("classes") not in (None, classes):
-        raise PublishedFileError(f"{path}: its classes {info['classes']} are not the config's {classes}")
-    weights = convert(path, source, model, state, module_meta, net)
-    provenance = {"source": source, "config": CONFIG_FILES[(source, model)], "file": path.name,
-                  "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "classes": classes,
+    net, config = published_network(path, source, model, info.get("classes"))
+    weights = convert(path, source, model, state, module_meta, net, config)
+    provenance = {"source": source, "config": config, "file": path.name,
+                  "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "classes": list(net.cfg.head.classes),
                   **{k: v for k, v in info.items() if k not in ("classes", "epoch") and v}}
     ckpt = {"model": model, "profile": "kitti", "config": dataclasses.asdict(net.cfg), "state_dict": weights,
             "epoch": info.get("epoch") if isinstance(info.get("epoch"), int) else "", "published": provenance}

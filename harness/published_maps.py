@@ -71,4 +71,11 @@ CONFIG_FILES = {
     ("openpcdet", "second"): "OpenPCDet tools/cfgs/kitti_models/second.yaml",
     ("mmdet3d", "dv_second"): "MMDetection3D configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py",
 }
+# Published configs of the same network for fewer classes: (source, model, the file's classes) -> config.
+# Their head keeps those classes' anchor sets (size, bottom height) and heads; everything else is the
+# main config's (MMDetection3D's Car config inherits the 3-class model's anchor ranges and test_cfg).
+CLASS_CONFIGS = {
+    ("mmdet3d", "dv_second", ("Car",)):
+        "MMDetection3D configs/dynamic_voxelization/second_dv_secfpn_8xb6-80e_kitti-3d-car.py",
+}
 IGNORED = {"openpcdet": ("global_step",), "mmdet3d": ()}

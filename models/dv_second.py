@@ -40,11 +40,13 @@ def _from_second(cfg: SECONDConfig) -> DVSECONDConfig:
 
 
 # MMDetection3D configs/_base_/models/second_hv_secfpn_kitti.py: classes in the data set config's
-# order, anchors at cell centres, its test_cfg (nms_pre 100, score_thr 0.1, nms_thr 0.01, max_num 50)
+# order, Anchor3DRangeGenerator over [0, 70.4] x [-40, 40] m (176 x 200 anchors per row, ends
+# included: 0.402 / 0.402 m apart, not the 0.4 m cell), its test_cfg (nms_pre 100, score_thr 0.1,
+# nms_thr 0.01, max_num 50)
 MMDET3D_HEAD = PublishedHeadConfig(
     classes=("Pedestrian", "Cyclist", "Car"), sizes=((0.8, 0.6, 1.73), (1.76, 0.6, 1.73), (3.9, 1.6, 1.56)),
-    bottoms=(-0.6, -0.6, -1.78), corners=False, dir_offset=MMDET3D_DIR_OFFSET, post="mmdet3d", nms_pre=100,
-    nms_iou=0.01, max_out=50)
+    bottoms=(-0.6, -0.6, -1.78), anchor_grid="linspace", dir_offset=MMDET3D_DIR_OFFSET, post="mmdet3d",
+    nms_pre=100, nms_iou=0.01, max_out=50)
 CONFIGS = {"tiny": _from_second(TINY), "compact": DVSECONDConfig(),
            "kitti": replace(_from_second(PUBLISHED), head=MMDET3D_HEAD)}
 

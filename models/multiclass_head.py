@@ -6,12 +6,14 @@ Anchor order is (y, x, class set, rotation) and the conv channels of an anchor a
 anchor-major, as in both references: ``(1, S * R * c, H, W) -> (H * W * S * R, c)``, so their
 checkpoint tensors load without a permutation.
 
-- OpenPCDet (``post = "openpcdet"``): anchors at the cell corners (``align_center: False``),
-  sigmoid, the best class of each anchor, score >= ``score_thresh``, top ``nms_pre``, ONE
-  class-agnostic rotated NMS, ``max_out`` boxes; the Car ones are returned.
-- MMDetection3D (``post = "mmdet3d"``): anchors at the cell centres, the ``nms_pre`` anchors of
-  the best class score, then per class: score > ``score_thresh`` and rotated NMS; the ``max_out``
-  best over all classes; the Car ones are returned.
+- OpenPCDet (``post = "openpcdet"``): anchors spread over the range, ends included
+  (``align_center: False``; ``anchor_grid = "arange"``), sigmoid, the best class of each anchor,
+  score >= ``score_thresh``, top ``nms_pre``, ONE class-agnostic rotated NMS, ``max_out`` boxes;
+  the Car ones are returned.
+- MMDetection3D (``post = "mmdet3d"``): anchors spread the same way by ``Anchor3DRangeGenerator``
+  (``anchor_grid = "linspace"``), the ``nms_pre`` anchors of the best class score, then per
+  class: score > ``score_thresh`` and rotated NMS; the ``max_out`` best over all classes; the Car
+  ones are returned.
 """
 from __future__ import annotations
 
@@ -32,34 +34,50 @@ MMDET3D_DIR_OFFSET = -math.pi / 2  # Anchor3DHead's default dir_offset (dir_limi
 
 @dataclass(frozen=True)
 class PublishedHeadConfig(HeadConfig):
-    """A 3-class published head; ``anchor_size`` / ``anchor_z`` of the base are unused (each class
-    has its own), the thresholds and NMS fields are the published test config's."""
+    """A published head (3 classes on KITTI; MMDetection3D's Car config: 1); ``anchor_size`` /
+    ``anchor_z`` of the base are unused (each class has its own), the thresholds and NMS fields are
+    the published test config's."""
 
     rotations: tuple[float, ...] = (0.0, 1.57)  # both references' anchor_rotations
     classes: tuple[str, ...] = ("Car", "Pedestrian", "Cyclist")  # the config's class order
     sizes: tuple[tuple[float, float, float], ...] = ((3.9, 1.6, 1.56), (0.8, 0.6, 1.73), (1.76, 0.6, 1.73))  # l, w, h m
     bottoms: tuple[float, ...] = (-1.78, -0.6, -0.6)  # anchor bottom heights, metres (LiDAR frame)
-    corners: bool = True  # anchors at cell corners (OpenPCDet align_center False) or centres
+    anchor_grid: str = "arange"  # where the anchors of a row sit along x and y (``axis_positions``)
     dir_offset: float = OPENPCDET_DIR_OFFSET
     post: str = "openpcdet"  # or "mmdet3d": which reference's post-processing
     reported: str = "Car"
 
 
-def axis_positions(lo: float, hi: float, n: int, corners: bool) -> Tensor:
-    """(n,) anchor positions along one axis: OpenPCDet's corners ``arange(lo, hi + 1e-5, (hi - lo) /
-    (n - 1))`` or MMDetection3D's cell centres."""
-    if corners:
-        pos = torch.arange(lo, hi + 1e-5, step=(hi - lo) / (n - 1), dtype=torch.float32)
-        return pos[:n]
-    edges = torch.linspace(lo, hi, n + 1, dtype=torch.float32)
+# Anchor positions along one axis of n cells over [lo, hi]; the first two spread the anchors from lo to
+# hi, ends included (spacing (hi - lo) / (n - 1), not the cell size), and differ only in float32 rounding
+# (up to 7.6e-6 m over 70.4 m, which a box inherits).
+ANCHOR_GRIDS = {
+    # OpenPCDet AnchorGenerator, align_center False
+    "arange": lambda lo, hi, n: torch.arange(lo, hi + 1e-5, step=(hi - lo) / (n - 1), dtype=torch.float32)[:n],
+    # MMDetection3D Anchor3DRangeGenerator (the anchor range's ends: the KITTI configs' x / y point cloud range)
+    "linspace": lambda lo, hi, n: torch.linspace(lo, hi, n, dtype=torch.float32),
+    # cell centres: MMDetection3D AlignedAnchor3DRangeGenerator (align_corner False), OpenPCDet align_center True
+    "centres": lambda lo, hi, n: _cell_centres(torch.linspace(lo, hi, n + 1, dtype=torch.float32)),
+}
+
+
+def _cell_centres(edges: Tensor) -> Tensor:
+    """(n,) centres of the cells between (n + 1,) edges: each left edge plus half the first cell."""
     return edges[:-1] + (edges[1] - edges[0]) / 2
+
+
+def axis_positions(lo: float, hi: float, n: int, grid: str) -> Tensor:
+    """(n,) anchor positions along one axis by the rule ``ANCHOR_GRIDS[grid]``."""
+    if grid not in ANCHOR_GRIDS:
+        raise ValueError(f"anchor_grid {grid!r}: expected one of {', '.join(ANCHOR_GRIDS)}")
+    return ANCHOR_GRIDS[grid](lo, hi, n)
 
 
 def published_anchors(pc_range, feat_hw: tuple[int, int], cfg: PublishedHeadConfig) -> Tensor:
     """(H * W * S * R, 7) anchors, order (y, x, class set, rotation), centre z = bottom + h / 2."""
     x0, y0, _, x1, y1, _ = pc_range
     h, w = feat_hw
-    xs, ys = axis_positions(x0, x1, w, cfg.corners), axis_positions(y0, y1, h, cfg.corners)  # (W,), (H,)
+    xs, ys = axis_positions(x0, x1, w, cfg.anchor_grid), axis_positions(y0, y1, h, cfg.anchor_grid)  # (W,), (H,)
     sets = torch.tensor([[b + s[2] / 2, *s] for s, b in zip(cfg.sizes, cfg.bottoms)], dtype=torch.float32)  # (S, 4)
     rots = torch.tensor(cfg.rotations, dtype=torch.float32)  # (R,)
     s, r = sets.shape[0], rots.shape[0]

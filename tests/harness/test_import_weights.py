@@ -130,11 +130,35 @@ def test_another_model_or_source_exits_2(tmp_path, capsys):
                 "--out", tmp_path / "o.pt") == 2
     assert "no published network" in capsys.readouterr().err
     state = random_state(layouts.mmdet3d_dv_second(True))
-    mmdet3d_file(tmp_path / "car.pth", state, True, classes=("Car",))
+    mmdet3d_file(tmp_path / "van.pth", state, True, classes=("Car", "Van"))
+    assert _run("--from", "mmdet3d", "--model", "dv_second", "--checkpoint", tmp_path / "van.pth",
+                "--out", tmp_path / "o.pt") == 2
+    assert "its classes ['Car', 'Van'] are not those of a published config" in capsys.readouterr().err
+    mmdet3d_file(tmp_path / "car.pth", state, True, classes=("Car",))  # the Car config's classes, 3-class tensors
     assert _run("--from", "mmdet3d", "--model", "dv_second", "--checkpoint", tmp_path / "car.pth",
                 "--out", tmp_path / "o.pt") == 2
-    assert "classes" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "second_dv_secfpn_8xb6-80e_kitti-3d-car.py" in err and "bbox_head.conv_cls.weight (18, 512, 1, 1)" in err
     assert not (tmp_path / "o.pt").exists()
+
+
+def test_dv_second_car_config_imports_into_a_one_class_head(tmp_path):
+    """MMDetection3D's Car config: the 3-class network's tensors but the Car anchor set's head channels
+    (2 anchors per cell); the Car anchors are the 3-class head's."""
+    shapes = layouts.mmdet3d_dv_second(True)
+    for name, per_anchor in (("conv_cls", 1), ("conv_reg", 7), ("conv_dir_cls", 2)):
+        shapes[f"bbox_head.{name}.weight"] = (2 * per_anchor, *shapes[f"bbox_head.{name}.weight"][1:])
+        shapes[f"bbox_head.{name}.bias"] = (2 * per_anchor,)
+    mmdet3d_file(tmp_path / "car.pth", random_state(shapes), True, classes=("Car",))
+    ckpt = torch.load(tmp_path / "car.pth", weights_only=True)  # as the mmcv 1.x runner saved it (the published file)
+    ckpt["meta"] = {"mmdet3d_version": "0.1.0", "CLASSES": ("Car",)}
+    torch.save(ckpt, tmp_path / "car.pth")
+    info = import_checkpoint(tmp_path / "car.pth", "mmdet3d", "dv_second", tmp_path / "car.pt")
+    assert info["classes"] == ["Car"] and info["config"].endswith("second_dv_secfpn_8xb6-80e_kitti-3d-car.py")
+    head = zoo.load_checkpoint(tmp_path / "car.pt")[0].head
+    three = zoo.build("dv_second", "kitti").head
+    assert head.cfg.classes == ("Car",) and head.cfg.sizes == ((3.9, 1.6, 1.56),) and head.cfg.bottoms == (-1.78,)
+    torch.testing.assert_close(head.anchors, three.anchors.reshape(-1, 3, 2, 7)[:, 2].reshape(-1, 7))
 
 
 def test_a_pickle_that_runs_code_is_refused(tmp_path, capsys):

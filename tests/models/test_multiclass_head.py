@@ -4,8 +4,8 @@ import numpy as np
 import torch
 
 from harness.boxes import iou_bev
-from models.multiclass_head import (MMDET3D_DIR_OFFSET, PublishedHeadConfig, mmdet3d_select, openpcdet_select,
-                                    published_anchors)
+from models.multiclass_head import (MMDET3D_DIR_OFFSET, PublishedHeadConfig, axis_positions, mmdet3d_select,
+                                    openpcdet_select, published_anchors)
 from models.pointpillars import CONFIGS as PP
 from models.second import CONFIGS as SECOND
 from models.vfe import PillarVFE
@@ -20,8 +20,18 @@ def test_anchors_at_corners_and_centres():
     a = published_anchors(RANGE, (4, 6), cfg).reshape(4, 6, 3, 2, 7).numpy()
     np.testing.assert_allclose(a[2, 5, 1, 1], [16.0, -8 + 2 * 16 / 3, -0.6 + 1.73 / 2, 0.8, 0.6, 1.73, 1.57], rtol=1e-6)
     np.testing.assert_allclose(a[0, 3, 0, 0, :3], [3 * 16 / 5, -8.0, -1.0], rtol=1e-6)
-    centred = published_anchors(RANGE, (4, 6), dataclasses.replace(cfg, corners=False)).reshape(4, 6, 3, 2, 7)
+    centred = published_anchors(RANGE, (4, 6), dataclasses.replace(cfg, anchor_grid="centres")).reshape(4, 6, 3, 2, 7)
     np.testing.assert_allclose(centred[1, 2, 2, 0, :2].numpy(), [2.5 * 16 / 6, -8 + 1.5 * 4], rtol=1e-6)
+
+
+def test_mmdet3d_anchors_spread_over_the_range_ends_included():
+    """Anchor3DRangeGenerator: linspace(lo, hi, n) (KITTI: 176 anchors 70.4 / 175 m apart, not at the 0.4 m
+    cells' centres); OpenPCDet's arange gives the same positions but for float32 rounding."""
+    xs = axis_positions(0.0, 70.4, 176, "linspace")
+    assert xs[0] == 0.0 and xs[-1] == np.float32(70.4)
+    np.testing.assert_allclose(np.diff(xs.numpy()), 70.4 / 175, atol=1e-5)  # float32 steps near 70 m
+    np.testing.assert_allclose(xs.numpy(), axis_positions(0.0, 70.4, 176, "arange").numpy(), atol=1e-5)
+    np.testing.assert_allclose(axis_positions(-40.0, 40.0, 200, "centres")[[0, -1]].numpy(), [-39.8, 39.8], rtol=1e-6)
 
 
 def _greedy(boxes, scores, thresh):
@@ -124,7 +134,8 @@ def test_both_post_processings_export_and_match_torch(tmp_path):
     from models.export import export_onnx, run_onnx
     points = torch.rand(50, 4)
     for cfg in (PublishedHeadConfig(nms_pre=100, max_out=20),
-                PublishedHeadConfig(nms_pre=60, max_out=15, post="mmdet3d", corners=False, dir_offset=MMDET3D_DIR_OFFSET)):
+                PublishedHeadConfig(nms_pre=60, max_out=15, post="mmdet3d", anchor_grid="linspace",
+                                    dir_offset=MMDET3D_DIR_OFFSET)):
         model = _HeadOnly(cfg).eval()
         export_onnx(model, tmp_path / f"{cfg.post}.onnx", {})
         with torch.no_grad():

@@ -19,8 +19,9 @@ GOLDEN = Path(__file__).parents[1] / "golden"
 CASES = [("openpcdet", "pointpillars"), ("openpcdet", "second")]
 
 
-def load(source: str, model: str) -> dict:
-    g = dict(np.load(GOLDEN / f"{source}_{model}.npz"))
+def load(source: str, model: str, config: str = "") -> dict:
+    """The golden data of a published network (``config``: a named other config of it, e.g. ``car``)."""
+    g = dict(np.load(GOLDEN / f"{source}_{model}{'_' + config if config else ''}.npz"))
     assert str(g["rule"]) == RULE
     dims, values = g["shape_dims"], g["shape_values"]
     ends = np.cumsum(dims)
@@ -72,8 +73,9 @@ def assert_matches_golden(net, g: dict) -> None:
     points = torch.from_numpy(g["points"])
     with torch.no_grad():
         bev = net.bev(points)[0]  # (C, H, W) the map entering the 2D backbone
-        cls, _, _ = net.head(net.backbone2d(bev[None]))  # (A, 3) class logits
-        boxes, scores = net(points)
+        feats = net.backbone2d(bev[None])  # the rest of forward(points), the map computed once
+        cls, _, _ = net.head(feats)  # (A, 3) class logits
+        boxes, scores = net.head.detect(feats)
     np.testing.assert_allclose(bev.numpy()[tuple(g["bev_index"].T)], g["bev_value"], rtol=1e-4, atol=1e-4)
     np.testing.assert_allclose(cls.numpy()[tuple(g["cls_index"].T)], g["cls_value"], rtol=1e-4, atol=1e-4)
     want_boxes, want_scores = car_boxes(g)
