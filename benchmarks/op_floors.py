@@ -35,7 +35,7 @@ from onnx import TensorProto, helper
 from torch._higher_order_ops.while_loop import while_loop
 
 from benchmarks.ort_profile import cpu_ms, gemm_peak, profile_frames, session
-from harness import kitti
+from harness.core import kitti
 from models.pointnet2 import _fps_graph, ball_queries, three_nn_interpolate
 
 

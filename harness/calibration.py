@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from harness import sotif
-from harness.boxes import iou_3d
-from harness.kitti import KittiError, frame_path
+from harness.core.boxes import iou_3d
+from harness.core.kitti import KittiError, frame_path
 
 N_BINS = 10
 IOUS = (0.7, 0.5)

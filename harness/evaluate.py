@@ -41,9 +41,10 @@ import pandas as pd
 
 from harness.cells import DIFFS, ap_text, binds, cap
 from harness.conditions import MAX_LEVELS, condition_labels
+from harness.core.files import atomic_write_text
+from harness.core.kitti import KittiError, Labels, read_frames_meta, read_image_set, read_labels
 from harness.eval_kitti import (DIFFICULTIES, Filter, ap_r40, build_eval_set, count_gt, frame_overlaps, kitti_ap,
                                 precision_recall, score_pr_curve)
-from harness.kitti import KittiError, Labels, atomic_write_text, read_frames_meta, read_image_set, read_labels
 
 SCHEMA = "sotif-bench/results/1"
 # Bumped whenever a fix changes any number of the same predictions, so that a run directory

@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from harness.kitti import (KittiError, Labels, atomic_write_text, check_image_fits_calib, folder_lock, frame_path,
-                           image_size, read_calib, read_image, read_image_set, read_points, write_labels)
+from harness.core.files import atomic_write_text, folder_lock, sha256_file
+from harness.core.kitti import (KittiError, Labels, check_image_fits_calib, frame_path, image_size, read_calib,
+                                read_image, read_image_set, read_points, write_labels)
 
 CONTRACT_VERSION = "1"
 REQUIRED_OUTPUTS = ("boxes", "scores")
@@ -82,14 +83,6 @@ def _dims(value_info) -> list:
 
 def _elem(value_info) -> int:
     return value_info.type.tensor_type.elem_type
-
-
-def sha256_file(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _subgraphs(node):

@@ -20,7 +20,7 @@ import json
 from dataclasses import replace
 from pathlib import Path
 
-from harness.kitti import atomic_write_bytes
+from harness.core.files import atomic_write_bytes
 from harness.stages import Stages, file_digest
 
 PROVENANCE_KEYS = ("source", "config", "file", "sha256", "classes")  # what import writes (harness.import_weights)

@@ -21,7 +21,7 @@ from markupsafe import Markup
 
 from harness import figures, notes, provenance, rain, rain_figures, report_pairs, report_space, sotif, tables
 from harness.cells import mark_capped
-from harness.kitti import atomic_write_bytes, atomic_write_text
+from harness.core.files import atomic_write_bytes, atomic_write_text
 from harness.published_run import published_note
 
 TEMPLATES = Path(__file__).parent / "templates"

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from harness import provenance, published_run, valset
+from harness.core.files import atomic_write_text, folder_lock, remove_temp_files
 from harness.jobs import interrupted, job_init
-from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
 from harness.predict_eval import predict_evaluate
 from harness.stages import Stages, file_digest
 from models.graph_cache import graph_code  # the export stage's key: a changed network exports again
@@ -550,7 +550,7 @@ def _wall_span(infos: dict[str, dict]) -> float | None:
 def data_stats(run_dir: Path) -> Path:
     """Per-frame point statistics of the SOTIF test data: count, max/mean range, ground share."""
     import pandas as pd
-    from harness.kitti import frame_path, read_frames_meta, read_points
+    from harness.core.kitti import frame_path, read_frames_meta, read_points
     data = run_dir / "data" / "sotif"
     meta = read_frames_meta(data / "meta" / "frames.csv")
     rows = []

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.core.kitti import read_image_set
 from harness.infer import OnnxDetector, _frame_inputs, latency_summary, runtime_reason
-from harness.kitti import read_image_set
 
 
 def _frames(data: Path, n: int) -> list[str]:

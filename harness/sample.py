@@ -12,7 +12,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from harness.kitti import KittiError
+from harness.core.kitti import KittiError
 from harness.tables import _read_json
 
 SAMPLE_PATTERNS = ("report.md", "index.html", "tables/*.csv", "figures/*.png")

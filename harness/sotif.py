@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.boxes import iou_bev
-from harness.kitti import KittiError, Labels, frame_path, read_calib, read_frames_meta, read_image_set, read_labels
-from simulator.scenario import DECEL_MPS2, EGO_DIMS, MARGIN_M, T_REACT_S, stopping_distance
+from harness.core.boxes import iou_bev
+from harness.core.braking import DECEL_MPS2, EGO_DIMS, MARGIN_M, T_REACT_S, stopping_distance
+from harness.core.kitti import KittiError, Labels, frame_path, read_calib, read_frames_meta, read_image_set, read_labels
 
 LIDAR_TO_FRONT_M = EGO_DIMS[0] / 2  # m, the ego's front bumper ahead of its roof LiDAR (above its centre)
 IOU_BEV_MIN = 0.5
@@ -43,7 +43,7 @@ META_COLUMNS = ("frame_id", "weather", "scenario_time_s", "lane_change_time_s", 
 def greedy_match(boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, iou_min: float = IOU_BEV_MIN,
                  overlap=iou_bev) -> np.ndarray:
     """(D,) bool: detection i (LiDAR box (D, 7)) matched a ground-truth box (G, 7) at IoU >= iou_min, the IoU
-    given by ``overlap`` ((D, 7), (G, 7) -> (D, G); BEV by default, ``harness.boxes.iou_3d`` for 3D).
+    given by ``overlap`` ((D, 7), (G, 7) -> (D, G); BEV by default, ``harness.core.boxes.iou_3d`` for 3D).
 
     Detections are taken by descending score; each takes its best still-free ground truth. Since
     higher scores go first, keeping only detections above any threshold leaves their matches unchanged.

@@ -33,7 +33,8 @@ from scipy.stats import binomtest
 
 from harness import sotif
 from harness.conditions import N_BINS, condition_labels
-from harness.kitti import KittiError
+from harness.core.braking import T_REACT_S, stopping_distance
+from harness.core.kitti import KittiError
 
 CONFIRM_K, CONFIRM_N = 3, 5  # hits within consecutive frames that confirm the slow car
 MIN_INSTANCES = 5  # fewer instances in a condition bin: too few to judge
@@ -63,7 +64,7 @@ def braking_margin(d0: float, closing_speed_mps: float, dt_s: float, latency_s: 
     """Metres to spare: gap left ``dt_s`` after d0 at a held closing speed, minus the stopping distance
     with ``latency_s`` added to the reaction time (negative: the ego cannot stop in time)."""
     gap = sotif.gap_without_braking(d0, closing_speed_mps, dt_s)
-    return gap - sotif.stopping_distance(closing_speed_mps, t_react=sotif.T_REACT_S + latency_s)
+    return gap - stopping_distance(closing_speed_mps, t_react=T_REACT_S + latency_s)
 
 
 def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
@@ -152,7 +153,7 @@ def _instance(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, thres
         row["ideal_margin_m"] = braking_margin(d0, dv0, float(after.iloc[ideal]["scenario_time_s"]) - t0, 0.0)
     row["feasible"] = row["ideal_margin_m"] is not None and bool(row["ideal_margin_m"] >= 0)
     row.update(n_frames=len(after), detected=bool(any(hits)), closing_speed_mps=dv0,
-               stopping_distance_m=sotif.stopping_distance(dv0, t_react=sotif.T_REACT_S + latency_s), **{"pass": False})
+               stopping_distance_m=stopping_distance(dv0, t_react=T_REACT_S + latency_s), **{"pass": False})
     i = confirmed_index(hits, k, n)
     if i is not None:
         t = float(after.iloc[i]["scenario_time_s"])

@@ -17,15 +17,14 @@ import sys
 import time
 from pathlib import Path
 
+from harness.core.files import atomic_write_text, sha256_file
 from harness.dataset import config_hash
-from harness.kitti import atomic_write_text
 
 
 BIG_FILE = 1 << 20  # bytes: a stage's record may keep such files' size and mtime, to skip reading them
 
 
 def file_digest(path: Path) -> str:
-    from harness.infer import sha256_file
     return sha256_file(path)[:16] if Path(path).is_file() else "missing"
 
 

@@ -17,7 +17,8 @@ import pandas as pd
 
 from harness import report_space, result_schema
 from harness.cells import DIFFS, DISTANCE_BINS, mark_capped, round_floats
-from harness.kitti import KittiError, atomic_write_text, read_frames_meta
+from harness.core.files import atomic_write_text
+from harness.core.kitti import KittiError, read_frames_meta
 from harness.published_run import weights
 
 RUN_SCHEMA = "sotif-bench/run/1"

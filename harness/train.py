@@ -32,9 +32,9 @@ import torch.multiprocessing as mp
 from tqdm import tqdm
 
 from harness.augment import AugmentConfig, augment
+from harness.core.files import atomic_write_bytes
 from harness.dataset import KittiDataset, config_hash, dataset_hash, has_split
 from harness.gt_database import load_or_build
-from harness.kitti import atomic_write_bytes
 from models import zoo
 from models.base import Detector
 

@@ -40,7 +40,7 @@ from pathlib import Path
 import onnx
 import torch
 
-from harness.kitti import atomic_write_bytes
+from harness.core.files import atomic_write_bytes
 
 ENV = "SOTIF_BENCH_GRAPH_CACHE"
 FORMAT = 1  # of an entry; a new layout changes every key

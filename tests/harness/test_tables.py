@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from harness import rain, tables
-from harness.kitti import KittiError
+from harness.core.kitti import KittiError
 
 WEATHERS = ["ClearNoon", "WetNoon", "HardRainNoon", "ClearSunset", "CloudyNight", "SoftRainNight"]
 BINS = ("0-30", "30-50", "50-80")
@@ -333,7 +333,7 @@ def test_the_papers_rows_stand_beside_ours():
 def test_the_cap_is_what_a_perfect_detector_scores_over_n_cars():
     from harness.cells import binds, cap
     from harness.eval_kitti import Filter, build_eval_set, kitti_ap
-    from harness.kitti import Labels
+    from harness.core.kitti import Labels
     for n in (1, 2, 5, 17, 40, 41, 45):
         xs = np.arange(n) * 6.0  # cars 6 m apart, each found exactly
         gt = Labels(name=np.array(["Car"] * n, dtype=object), truncated=np.zeros(n), occluded=np.zeros(n, int),
