@@ -433,14 +433,8 @@ def test_warm_start_trains_the_sibling_first_and_starts_from_it(tmp_path, monkey
 
 
 def test_a_changed_graph_code_exports_again_and_trains_nothing(tmp_path, monkeypatch):
-    import hashlib
-
     import harness.run as hr
-    import models
     from harness.stages import Stages
-    root = Path(models.__file__).parent
-    reference = hashlib.sha256(b"".join(p.name.encode() + b"\0" + p.read_bytes() for p in sorted(root.glob("*.py"))))
-    assert hr.graph_code() == reference.hexdigest()[:16]
     calls = []
 
     def train(name, data, out, **k):
