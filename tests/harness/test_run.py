@@ -433,6 +433,7 @@ def test_warm_start_trains_the_sibling_first_and_starts_from_it(tmp_path, monkey
 
 
 def test_a_changed_graph_code_exports_again_and_trains_nothing(tmp_path, monkeypatch):
+    import harness.model_stages as ms
     import harness.run as hr
     from harness.stages import Stages
     calls = []
@@ -452,6 +453,6 @@ def test_a_changed_graph_code_exports_again_and_trains_nothing(tmp_path, monkeyp
     monkeypatch.setattr("models.export.export_checkpoint", export)
     stages = Stages(tmp_path, False)
     for code in ("a", "a", "b"):
-        monkeypatch.setattr(hr, "graph_code", lambda code=code: code)
+        monkeypatch.setattr(ms, "graph_code", lambda code=code: code)
         hr._train_export(stages, TINY, tmp_path, "pointpillars", "data")
     assert calls == ["train", "export", "export"]
