@@ -331,7 +331,8 @@ def boxes_to_results(boxes: np.ndarray, scores: np.ndarray, calib, image_hw) -> 
     return labels.select(visible)
 
 
-def _frame_inputs(det: OnnxDetector, root: Path, fid: str):
+def frame_inputs(det: OnnxDetector, root: Path, fid: str):
+    """One frame as ``det`` takes it: (points, calib, image or None, lidar2img or None, the image's (H, W))."""
     points = read_points(frame_path(root, "velodyne", fid))
     calib = read_calib(frame_path(root, "calib", fid))
     img_path = frame_path(root, "image_2", fid)
@@ -446,7 +447,7 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
         for fid in tqdm(ids, desc=f"predict {det.info.architecture}", disable=not progress, unit="frame"):
             if (out / f"{fid}.txt").is_file():
                 continue
-            points, calib, image, l2i, hw = _frame_inputs(det, data, fid)
+            points, calib, image, l2i, hw = frame_inputs(det, data, fid)
             try:
                 if not ran:
                     det(points, image, l2i)  # warm-up: first-run allocations are not latency

@@ -144,7 +144,7 @@ def _instance(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, thres
     after = frames[(frames["scenario_time_s"] >= t_lc - 1e-6) & (frames["slow_car_label_index"] >= 0)]
     if np.isnan(t_lc) or after.empty:
         return row, pd.DataFrame()
-    hits, slow_boxes = sotif._slow_car_track(data_dir, predictions_dir, after, threshold)
+    hits, slow_boxes = sotif.slow_car_track(data_dir, predictions_dir, after, threshold)
     ref = after.iloc[0]
     dv0, d0 = float(ref["ego_speed_mps"] - ref["slow_car_speed_mps"]), sotif.rear_distance(slow_boxes[0])
     t0 = float(ref["scenario_time_s"])
@@ -180,7 +180,7 @@ def instance_view(data_dir, predictions_dir, threshold: float, latency_s: float,
     if not predictions_dir.is_dir():
         raise KittiError(predictions_dir, "prediction folder not found")
     meta = sotif.load_meta(data_dir)
-    ids = sotif._split_ids(data_dir, split)
+    ids = sotif.split_ids(data_dir, split)
     if not ids:
         raise KittiError(data_dir / "ImageSets" / f"{split}.txt", "no frames in the split")
     frames = meta[meta["frame_id"].isin(set(ids))].copy()

@@ -40,7 +40,8 @@ class Run:
         return list(self.summary["models"])
 
 
-def _read_json(path: Path) -> dict:
+def read_json_object(path: Path) -> dict:
+    """The JSON object in ``path``; a KittiError naming the file when it is missing, not JSON or not an object."""
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -69,12 +70,12 @@ def load_run(run_dir) -> Run:
     value of the wrong type raises ``KittiError`` naming the file and the key (``harness.result_schema``)."""
     run_dir = Path(run_dir)
     path = run_dir / "results.json"
-    summary = _read_json(path)
+    summary = read_json_object(path)
     _check_summary(path, summary)
     results = {}
     for name, m in summary["models"].items():
         res_path = run_dir / m["results"]
-        res = _read_json(res_path)
+        res = read_json_object(res_path)
         for key in ("kitti", "headline", "distance", "recall"):
             if key not in res:
                 raise KittiError(res_path, f"no {key!r} entry (not a harness.evaluate results file)")

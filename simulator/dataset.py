@@ -305,7 +305,7 @@ def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None
     atomic_write_text(root / "meta" / "dataset.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
 
 
-def _worker_init() -> None:
+def worker_init() -> None:
     """Keep freed buffers in the worker's heap (glibc): a scan allocates dozens of MB-sized
     temporaries, and returning each to the OS costs page faults on the next frame (~10 % of
     a frame). Only the worker processes this module starts are tuned; elsewhere a no-op."""
@@ -375,7 +375,7 @@ def _simulate_frames(root: Path, cfg: GenerateConfig, preset: str, jobs: list, w
     else:
         chunk = max(1, len(jobs) // (workers * 8))
         method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
-        with mp.get_context(method).Pool(workers, initializer=_worker_init) as pool:
+        with mp.get_context(method).Pool(workers, initializer=worker_init) as pool:
             for rec in pool.imap_unordered(run_job, jobs, chunksize=chunk):
                 records.append(rec)
                 bar.update()
