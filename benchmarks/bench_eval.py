@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 
+from harness.core.kitti import Labels, kitti_calib
 from harness.eval_kitti import build_eval_set, kitti_ap
-from harness.kitti import Labels, kitti_calib
 
 
 def generated_frames(n_frames: int, seed: int = 0):

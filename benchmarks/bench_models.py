@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from harness import kitti
+from harness.core import kitti
+from harness.core.files import atomic_write_text
 from harness.dataset import KittiDataset
 
 CLEAR = ("ClearNoon", "ClearSunset")
@@ -188,7 +189,7 @@ def main(argv=None) -> int:
     torch.set_num_threads(1)
     if args.speed:
         rows = speed(args)
-        kitti.atomic_write_text(args.out / "bench_speed.json", json.dumps(rows, indent=1))
+        atomic_write_text(args.out / "bench_speed.json", json.dumps(rows, indent=1))
         print(markdown(rows, SPEED_COLS))
         return 0
     train_root = args.train_data or simulate(args.out / "data" / "train", "train", 400, 0)
@@ -198,7 +199,7 @@ def main(argv=None) -> int:
     for name in args.models.split(","):
         rows.append(bench_model(name, args, Path(train_root), eval_root, split))
         print(markdown(rows[-1:]), flush=True)
-    kitti.atomic_write_text(args.out / "bench_models.json", json.dumps(rows, indent=1))
+    atomic_write_text(args.out / "bench_models.json", json.dumps(rows, indent=1))
     print(markdown(rows))
     return 0
 

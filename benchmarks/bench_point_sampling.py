@@ -17,7 +17,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from harness.boxes import points_in_boxes
+from harness.core.boxes import points_in_boxes
 from harness.dataset import KittiDataset
 from models.point_rcnn import CONFIGS, PointRCNN
 from models.pointnet2 import farthest_point_sample

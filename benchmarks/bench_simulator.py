@@ -19,7 +19,7 @@ from embreex import rtcore_scene as rtcs
 from embreex.mesh_construction import TriangleMesh
 
 from simulator import generate
-from simulator.dataset import GenerateConfig, _worker_init, plan_jobs, run_job
+from simulator.dataset import GenerateConfig, plan_jobs, run_job, worker_init
 from simulator.lidar import LidarSpec, ray_directions, scan
 from simulator.raycast import RayScene
 from simulator.road import RoadConfig
@@ -114,7 +114,7 @@ def main() -> None:
                     help="comma-separated presets for the rays/s comparison")
     ap.add_argument("--only", default="rays,frames,full", help="comma-separated parts: rays, frames, full")
     ap.add_argument("--default-malloc", action="store_true",
-                    help="keep glibc's malloc settings (the generator's workers use simulator.dataset._worker_init)")
+                    help="keep glibc's malloc settings (the generator's workers use simulator.dataset.worker_init)")
     args = ap.parse_args()
     weathers = [w for w in args.weathers.split(",") if w]
     bad = [w for w in weathers if w not in WEATHER_PRESETS]
@@ -123,7 +123,7 @@ def main() -> None:
         ap.error(f"unknown weather(s) {bad} or part(s) {sorted(parts - {'rays', 'frames', 'full'})}")
     print(f"load average (1 min) at start: {_load()} on {os.cpu_count()} cores")
     if not args.default_malloc:
-        _worker_init()
+        worker_init()
     if "rays" in parts:
         bench_rays(args.repeats, weathers)
     if "frames" in parts:

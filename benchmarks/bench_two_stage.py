@@ -19,10 +19,11 @@ import torch
 
 import numpy as np
 
+from harness.core.files import atomic_write_text
+from harness.core.kitti import read_frames_meta, write_image_set
 from harness.dataset import KittiDataset
 from harness.evaluate import evaluate
 from harness.infer import OnnxDetector, predict
-from harness.kitti import atomic_write_text, read_frames_meta, write_image_set
 from harness.runtime import outputs_agree
 from harness.train import train
 from models.export import export_checkpoint

@@ -13,7 +13,7 @@ import time
 from pathlib import Path
 
 from harness.run import DATA_PARTS
-from harness.stages import Stages, _files, as_recorded
+from harness.stages import Stages, as_recorded, output_files
 
 
 def drop_from_cache(files: list[Path]) -> None:
@@ -33,7 +33,7 @@ def main() -> None:
     for preset in ("train", "sotif"):
         rec = stages.record(f"simulate_{preset}")
         outputs = [args.run / "data" / preset / part for part in DATA_PARTS]
-        files = [p for o in outputs for p in _files(o)]
+        files = [p for o in outputs for p in output_files(o)]
         size = sum(p.stat().st_size for p in files) / 2**30
         print(f"{preset}: {len(files)} files, {size:.2f} GiB, {len(rec.get('stats', {}))} checked by size and mtime")
         for label, stats in (("every byte hashed", {}), ("scans by size and mtime", rec.get("stats", {}))):

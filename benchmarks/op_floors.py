@@ -35,8 +35,8 @@ from onnx import TensorProto, helper
 from torch._higher_order_ops.while_loop import while_loop
 
 from benchmarks.ort_profile import cpu_ms, gemm_peak, profile_frames, session
-from harness import kitti
-from models.pointnet2 import _fps_graph, ball_queries, three_nn_interpolate
+from harness.core import kitti
+from models.pointnet2 import ball_queries, fps_loop, three_nn_interpolate
 
 
 def exported(module: torch.nn.Module, args: tuple, dims: tuple, folder: Path, name: str) -> ort.InferenceSession:
@@ -78,7 +78,7 @@ class Fps(torch.nn.Module):
         self.num = num
 
     def forward(self, xyz):
-        return _fps_graph(xyz[None], self.num)[0]
+        return fps_loop(xyz[None], self.num)[0]
 
 
 class FpsFloor(torch.nn.Module):

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.infer import OnnxDetector, _frame_inputs
-from harness.runtime import _frames
+from harness.infer import OnnxDetector, frame_inputs
+from harness.runtime import first_test_frames
 
 MODELS = "pointpillars,second,dv_second,parta2,pv_rcnn,point_rcnn,mvx_net"
 
@@ -36,7 +36,7 @@ def paired_ratio(first: np.ndarray, second: np.ndarray, seed: int = 0, draws: in
 
 def frame_feeds(det: OnnxDetector, data: Path, fid: str) -> tuple:
     """points, image, lidar2img of a frame as the detector takes them (image None for LiDAR models)."""
-    points, _, image, lidar2img, _ = _frame_inputs(det, data, fid)
+    points, _, image, lidar2img, _ = frame_inputs(det, data, fid)
     return points, image, lidar2img
 
 
@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     p.add_argument("--threads", type=int, default=2, help="onnxruntime's threads (OpenVINO takes the cores)")
     args = p.parse_args(argv)
     data = args.run / "data" / "sotif"
-    ids = _frames(data, args.frames)
+    ids = first_test_frames(data, args.frames)
     print(f"{len(ids)} SOTIF frames, onnxruntime {args.threads} threads, ABBA per frame")
     print("| model | ORT p50 ms | OpenVINO p50 ms | OpenVINO / ORT per frame, median [95 %] | faster |")
     print("|---|---|---|---|---|")

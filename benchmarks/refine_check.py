@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from harness.boxes import iou_3d
+from harness.core.boxes import iou_3d
+from harness.core.kitti import IMAGE_SIZE
 from harness.dataset import KittiDataset
 from harness.eval_kitti import build_eval_set, kitti_ap
 from harness.infer import OnnxDetector, boxes_to_results
-from harness.kitti import IMAGE_SIZE
 from models.nms import select_ranked
 
 NAMES = ("x", "y", "z", "l", "w", "h", "yaw")

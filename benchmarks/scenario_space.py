@@ -13,12 +13,13 @@ import argparse
 
 import numpy as np
 
-from harness import kitti
+from harness.core import kitti
+from harness.core.braking import EGO_DIMS, stopping_distance
 from simulator.dataset import GenerateConfig, plan_jobs
 from simulator.frame import frame_state, world_scene
 from simulator.labels import frame_labels
 from simulator.lidar import LidarSpec
-from simulator.scenario import EGO_DIMS, stopping_distance, window_length_s
+from simulator.scenario import window_length_s
 from simulator.space import ScenarioSpace, instances
 
 

@@ -27,7 +27,7 @@ import math
 import sys
 from pathlib import Path
 
-from harness.tables import DISTANCE_BINS as BINS  # "0-30", "30-50", "50-80" (m)
+from harness.cells import DISTANCE_BINS as BINS  # "0-30", "30-50", "50-80" (m)
 from harness.tables import mean_range  # the draws table's mean and range
 
 TWO_STAGE = ("parta2", "pv_rcnn", "point_rcnn")

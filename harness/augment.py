@@ -10,9 +10,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from harness.boxes import wrap_angle
+from harness.core.boxes import wrap_angle
+from harness.core.types import Sample
 from harness.gt_database import GtDatabase, GtSamplingConfig, sample_objects
-from harness.types import Sample
 
 
 @dataclass(frozen=True)

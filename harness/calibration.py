@@ -15,8 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from harness import sotif
-from harness.boxes import iou_3d
-from harness.kitti import KittiError, frame_path
+from harness.core.boxes import iou_3d
+from harness.core.kitti import KittiError, frame_path
 
 N_BINS = 10
 IOUS = (0.7, 0.5)
@@ -49,16 +49,16 @@ def calibration_view(data_dir, predictions_dir, split: str = "test", ious=IOUS, 
     """``{"<iou>": {"all" | <precipitation class>: reliability(...)}}`` over the test frames."""
     data_dir, predictions_dir = Path(data_dir), Path(predictions_dir)
     meta = sotif.load_meta(data_dir)
-    ids = sotif._split_ids(data_dir, split)
+    ids = sotif.split_ids(data_dir, split)
     if not ids:
         raise KittiError(data_dir / "ImageSets" / f"{split}.txt", "no frames in the split")
     group = meta.set_index("frame_id")[GROUP_COLUMN] if GROUP_COLUMN in meta.columns else None
     label_dir = frame_path(data_dir, "label_2", "0").parent
     scores, correct, classes = [], {t: [] for t in ious}, []
     for fid in ids:
-        gt, _, gt_labels = sotif._lidar_labels(data_dir, label_dir, fid, with_score=False)
+        gt, _, gt_labels = sotif.lidar_labels(data_dir, label_dir, fid, with_score=False)
         gt = gt[np.asarray(gt_labels.name, dtype=str) == "Car"] if len(gt) else gt
-        boxes, s, _ = sotif._lidar_labels(data_dir, predictions_dir, fid, with_score=True)
+        boxes, s, _ = sotif.lidar_labels(data_dir, predictions_dir, fid, with_score=True)
         scores.append(np.asarray(s, dtype=np.float64))
         for t in ious:
             correct[t].append(match_3d(boxes, s, gt, t))

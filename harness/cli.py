@@ -445,7 +445,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _bad_input(e: Exception) -> bool:
-    """Errors that are the input's, not the program's: ValueErrors (``harness.kitti.KittiError`` and
+    """Errors that are the input's, not the program's: ValueErrors (``harness.core.kitti.KittiError`` and
     ``harness.infer.ContractError`` among them), bad paths, and full or read-only disks."""
     return (isinstance(e, (ValueError, FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError,
                            PermissionError))

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from harness.kitti import atomic_write_text
+from harness.core.files import atomic_write_text
 from harness.provenance import ROOT
 from simulator.dataset import read_content_digest
 

@@ -1,4 +1,4 @@
-"""KITTI-layout data set as :class:`harness.types.Sample` items (built on harness.kitti).
+"""KITTI-layout data set as :class:`harness.core.types.Sample` items (built on harness.core.kitti).
 
 ``KittiDataset(root, split, with_image=False)``: frames listed in ``<root>/ImageSets/<split>.txt``;
 ``ds[i]`` reads velodyne points, calib and labels (converted to LiDAR boxes) and, when
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import kitti
-from harness.types import Sample
+from harness.core import kitti
+from harness.core.types import Sample
 
 
 def split_file(root, split: str) -> Path:

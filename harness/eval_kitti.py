@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from harness.boxes import bev_intersection, iou_bev
-from harness.kitti import Labels
+from harness.core.boxes import bev_intersection, iou_bev
+from harness.core.kitti import Labels
 
 N_SAMPLE_PTS = 41
 METRICS = ("bbox", "bev", "3d")
@@ -83,7 +83,7 @@ def image_box_overlap(boxes: np.ndarray, query: np.ndarray, criterion: int = -1)
 
 def _camera_boxes(labels: Labels) -> np.ndarray:
     """KITTI camera boxes as rows [x, z, -y_centre, l, w, h, -ry] for the counter-clockwise box
-    functions of ``harness.boxes``. ``rotation_y`` turns a box about the camera's y axis (down),
+    functions of ``harness.core.boxes``. ``rotation_y`` turns a box about the camera's y axis (down),
     which in the (x, z) plane is clockwise: the reference's ``rbbox_to_corners`` rotates by -ry."""
     h, w, l = labels.dimensions.T
     x, y, z = labels.location.T

@@ -41,9 +41,10 @@ import pandas as pd
 
 from harness.cells import DIFFS, ap_text, binds, cap
 from harness.conditions import MAX_LEVELS, condition_labels
+from harness.core.files import atomic_write_text
+from harness.core.kitti import KittiError, Labels, read_frames_meta, read_image_set, read_labels
 from harness.eval_kitti import (DIFFICULTIES, Filter, ap_r40, build_eval_set, count_gt, frame_overlaps, kitti_ap,
                                 precision_recall, score_pr_curve)
-from harness.kitti import KittiError, Labels, atomic_write_text, read_frames_meta, read_image_set, read_labels
 
 SCHEMA = "sotif-bench/results/1"
 # Bumped whenever a fix changes any number of the same predictions, so that a run directory
@@ -154,7 +155,7 @@ def recall_at_iou(gt: list[Labels], boxes: list[Labels], thresholds=RECALL_THRES
     return {f"{t}": (float(h / total) if total else 0.0) for t, h in zip(thresholds, hit)}
 
 
-def _summary(es, frames=None) -> dict:
+def headline_summary(es, frames=None) -> dict:
     """Headline AP (all distances, filters off) and distance bins for 3D and BEV at 0.7 and 0.5,
     and the number of Car boxes each counts (``n_gt``: AP40 over n boxes is at most (n - 1) / 40)."""
     head, dist = {"3d": {}, "bev": {}}, {"3d": {}, "bev": {}}
@@ -239,7 +240,7 @@ def _group_rows(es, gt, stage_boxes, ids, meta: pd.DataFrame, meta_path, column:
         rows[str(value)] = {
             "n_frames": int(len(frames)),
             "n_car": int(sum((np.asarray(gt[i].name, dtype=str) == "Car").sum() for i in frames)),
-            **_summary(es, frames),
+            **headline_summary(es, frames),
             "headline_ci95": {k: bootstrap_ci(es, frames, k, n_boot, seed, clusters=clusters) for k in ("3d", "bev")},
             "ci_method": ci_method(clusters, n_boot),
             "headline_ci95_0.5": {"3d": bootstrap_ci(es, frames, "3d", n_boot, seed, thr=0.5, clusters=clusters)},
@@ -273,7 +274,7 @@ def evaluate(labels, predictions, split=None, group_by=None, meta=None,
     raw = score_pr_curve(es, "3d", ALL_DISTANCES, 0.7)
     result = {"schema": SCHEMA, "n_frames": len(ids),
               "n_car": int(sum((np.asarray(g.name, dtype=str) == "Car").sum() for g in gt)),
-              "kitti": kitti_ap(es), **_summary(es), "recall": _recalls(gt, stage_boxes),
+              "kitti": kitti_ap(es), **headline_summary(es), "recall": _recalls(gt, stage_boxes),
               "n_gt_kitti": {f.name: count_gt(es, f) for f in DIFFICULTIES},
               "pr_curve": {"precision": curve["precision"].tolist(), "recall": curve["recall"].tolist()},
               "pr_curve_raw": {k: v.tolist() for k, v in raw.items()},

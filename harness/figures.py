@@ -18,8 +18,8 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
-from harness.boxes import corners_bev
-from harness.kitti import frame_path, read_calib, read_image_set, read_labels, read_points
+from harness.core.boxes import corners_bev
+from harness.core.kitti import frame_path, read_calib, read_image_set, read_labels, read_points
 
 DPI = 90
 MODEL_COLOURS = ("#d62728", "#1f77b4", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf", "#bcbd22")

@@ -24,10 +24,11 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from harness import kitti
-from harness.boxes import iou_bev, points_in_boxes
+from harness.core import kitti
+from harness.core.boxes import iou_bev, points_in_boxes
+from harness.core.files import atomic_write_bytes
+from harness.core.types import Sample
 from harness.dataset import KittiDataset
-from harness.types import Sample
 
 FORMAT = "sotif.gt_database.1"
 _FIELDS = ("points", "offsets", "boxes", "names", "frame_ids", "num_points", "difficulty")
@@ -140,7 +141,7 @@ def save(path, db: GtDatabase, key: str) -> Path:
     """Write the database with its key to ``path`` (.npz) atomically."""
     buf = io.BytesIO()
     np.savez(buf, key=np.array(key), **{f: getattr(db, f) for f in _FIELDS})
-    return kitti.atomic_write_bytes(path, buf.getvalue())
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 def load(path, key: str) -> GtDatabase:

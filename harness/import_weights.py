@@ -24,7 +24,7 @@ from pathlib import Path
 
 import torch
 
-from harness.kitti import atomic_write_bytes
+from harness.core.files import atomic_write_bytes
 from harness.published_maps import CLASS_CONFIGS, CONFIG_FILES, IGNORED, SPARSE, TABLES
 from models import zoo
 

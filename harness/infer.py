@@ -18,8 +18,9 @@ from pathlib import Path
 import numpy as np
 import onnx
 
-from harness.kitti import (KittiError, Labels, atomic_write_text, check_image_fits_calib, folder_lock, frame_path,
-                           image_size, read_calib, read_image, read_image_set, read_points, write_labels)
+from harness.core.files import atomic_write_text, folder_lock, sha256_file
+from harness.core.kitti import (KittiError, Labels, check_image_fits_calib, frame_path, image_size, read_calib,
+                                read_image, read_image_set, read_points, write_labels)
 
 CONTRACT_VERSION = "1"
 REQUIRED_OUTPUTS = ("boxes", "scores")
@@ -82,14 +83,6 @@ def _dims(value_info) -> list:
 
 def _elem(value_info) -> int:
     return value_info.type.tensor_type.elem_type
-
-
-def sha256_file(path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _subgraphs(node):
@@ -338,7 +331,8 @@ def boxes_to_results(boxes: np.ndarray, scores: np.ndarray, calib, image_hw) -> 
     return labels.select(visible)
 
 
-def _frame_inputs(det: OnnxDetector, root: Path, fid: str):
+def frame_inputs(det: OnnxDetector, root: Path, fid: str):
+    """One frame as ``det`` takes it: (points, calib, image or None, lidar2img or None, the image's (H, W))."""
     points = read_points(frame_path(root, "velodyne", fid))
     calib = read_calib(frame_path(root, "calib", fid))
     img_path = frame_path(root, "image_2", fid)
@@ -453,7 +447,7 @@ def _predict_frames(det: OnnxDetector, data: Path, out: Path, ids: list[str], st
         for fid in tqdm(ids, desc=f"predict {det.info.architecture}", disable=not progress, unit="frame"):
             if (out / f"{fid}.txt").is_file():
                 continue
-            points, calib, image, l2i, hw = _frame_inputs(det, data, fid)
+            points, calib, image, l2i, hw = frame_inputs(det, data, fid)
             try:
                 if not ran:
                     det(points, image, l2i)  # warm-up: first-run allocations are not latency

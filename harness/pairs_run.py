@@ -16,9 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
+from harness.core.files import atomic_write_text
+from harness.core.kitti import read_frames_meta, read_image_set
 from harness.eval_kitti import build_eval_set
 from harness.evaluate import load_folder
-from harness.kitti import atomic_write_text, read_frames_meta, read_image_set
 from harness.pairs import headline_ap, paired_comparison, val_ap
 from harness.valset import FRAME_LIST, VALSET_PREDICTIONS
 

@@ -3,9 +3,9 @@
 A checkpoint that ``sotif-bench import`` wrote (a ``kitti``-profile checkpoint carrying ``published``:
 source, config file, file name, SHA-256, classes) becomes a model of the run under the tag
 ``<model>_<source>`` (``second_openpcdet``, ``dv_second_mmdet3d``; the source's suffix keeps a tag apart
-from every trained model's name and draw). It is not trained: the stage ``import_<tag>`` copies it to
-``models/<tag>/checkpoint.pt``, where a trained model keeps its checkpoint, and from there the export,
-prediction, evaluation and runtime stages are the trained models' own. It has one draw whatever
+from every trained model's name and draw). It is not trained: the stage ``import_<tag>``
+(``harness.model_stages``) copies it to ``models/<tag>/checkpoint.pt``, where a trained model keeps its
+checkpoint, and from there the export, prediction, evaluation and runtime stages are the trained models' own. It has one draw whatever
 ``--seeds`` (its weights are given, not drawn). In ``results.json`` its model entry holds ``published``
 (the provenance, from its ONNX file's ``sotif.published``) and ``train`` null; the report marks it
 (``weights``: published, and the provenance under the models table).
@@ -19,9 +19,6 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 from pathlib import Path
-
-from harness.kitti import atomic_write_bytes
-from harness.stages import Stages, file_digest
 
 PROVENANCE_KEYS = ("source", "config", "file", "sha256", "classes")  # what import writes (harness.import_weights)
 
@@ -87,20 +84,6 @@ def trained(cfg, names: list[str]) -> list[str]:
 def draws(cfg, name: str) -> int:
     """Training draws of a model: one for an imported model."""
     return 1 if source(cfg, name) else cfg.seeds
-
-
-def import_export(stages: Stages, cfg, run_dir: Path, tag: str) -> dict:
-    """Copy an imported model's checkpoint into the run (stage ``import_<tag>``) and export it: the
-    trained models' ``_train_export`` for it. Returns its training record: none."""
-    from harness.run import checkpoint_of, export_stage
-    src, ckpt = source(cfg, tag), checkpoint_of(run_dir, tag)
-
-    def copy() -> dict:
-        atomic_write_bytes(ckpt, src.read_bytes())
-        return {"from": str(src)}
-    stages.run(f"import_{tag}", {"checkpoint": file_digest(src)}, copy, outputs=[ckpt])
-    export_stage(stages, run_dir, tag, expected_model=tag.rsplit("_", 1)[0])
-    return {}
 
 
 def mark(cfg, run_dir: Path, name: str, entry: dict) -> dict:

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from harness.tables import CLEAN_PRESETS, corrupt_presets, group_rows, headline_matrix, relative_ap
+from harness.groups import CLEAN_PRESETS, corrupt_presets, group_rows, headline_matrix, relative_ap
 
 PRECIPITATION = ("dry", "wet", "rain")
 RAIN_GRADES = (("soft rain", "SoftRainNoon"), ("mid rain", "MidRainyNoon"), ("hard rain", "HardRainNoon"))
@@ -166,7 +166,7 @@ def reading(lo: float, hi: float) -> str:
 
 
 def robustness_table(long: pd.DataFrame, meta: pd.DataFrame | None = None) -> pd.DataFrame:
-    """Per model (``long``: ``tables.group_table`` by weather): clean AP (mean of ClearNoon and ClearSunset), mRR
+    """Per model (``long``: ``groups.group_table`` by weather): clean AP (mean of ClearNoon and ClearSunset), mRR
     (mean relative AP over the rain/wet presets, Robo3D) with its interval and reading, and the worst rain/wet
     preset with its relative AP and interval (a clean preset is never named)."""
     cols = ["model", "clean_ap3d", "mRR", "mRR_lo", "mRR_hi", "reading", "n_corrupt_presets", "worst_preset",

@@ -20,8 +20,9 @@ from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
 from harness import data_identity, figures, notes, provenance, rain, rain_figures, report_pairs, report_space, sotif, tables
-from harness.cells import mark_capped
-from harness.kitti import atomic_write_bytes, atomic_write_text
+from harness.cells import DISTANCE_BINS, mark_capped
+from harness.core.files import atomic_write_bytes, atomic_write_text
+from harness.groups import headline_matrix
 from harness.published_run import published_note
 
 TEMPLATES = Path(__file__).parent / "templates"
@@ -63,8 +64,8 @@ ACCURACY_SECTIONS = ("main", "paper", "sotif", "robustness", "detail")  # their 
 COLUMN_NAMES = {
     "n_frames": "frames", "n_car": "cars", "ap3d": "AP 3D", "ap3d_lo": "AP 3D 95% low", "ap3d_hi": "AP 3D 95% high",
     "ap_bev": "AP BEV", "ap3d_0.5": "AP 3D @0.5", "kitti_mod_3d": "KITTI mod 3D", "kitti_mod_bev": "KITTI mod BEV",
-    **{f"ap3d_{b}m": f"AP 3D {b} m" for b in tables.DISTANCE_BINS},
-    "n_gt_kitti_mod": "cars KITTI mod", **{f"n_gt_{b}m": f"cars {b} m" for b in tables.DISTANCE_BINS},
+    **{f"ap3d_{b}m": f"AP 3D {b} m" for b in DISTANCE_BINS},
+    "n_gt_kitti_mod": "cars KITTI mod", **{f"n_gt_{b}m": f"cars {b} m" for b in DISTANCE_BINS},
     "recall@0.5": "recall @0.5 %", "recall@0.7": "recall @0.7 %",
     **{f"{s}@{t}": f"{s.replace('rcnn', 'RCNN').replace('roi', 'RoI')} @{t}"
        for s in ("roi", "rcnn") for t in ("0.3", "0.5", "0.7")},
@@ -166,7 +167,7 @@ def _rain_figures(run: tables.Run, t: dict) -> dict:
         specs["rain"] = ("Headline AP40 3D per model in dry, wet and rain (all times of day) and the noon rain grades "
                          "(soft 4.5, mid 18, hard 50 mm/h), at IoU 0.5 (top) and 0.7 (bottom); bars: 95% bootstrap "
                          f"interval over {_resampled(run)}.", rain_figures.rain_figure(t["rain"], MODEL_LABELS))
-    matrix = tables.headline_matrix(t["weather_detail"])
+    matrix = headline_matrix(t["weather_detail"])
     if matrix.empty:
         return specs
     order = rain.preset_order(matrix.index, run.meta)
@@ -209,7 +210,7 @@ def _ci_display(wide: pd.DataFrame, models: list[str]) -> pd.DataFrame:
 
 
 def _group_matrix(long: pd.DataFrame, column: str) -> pd.DataFrame:
-    m = tables.headline_matrix(long, column)
+    m = headline_matrix(long, column)
     return m.rename_axis(column).reset_index() if not m.empty else m
 
 
@@ -378,7 +379,7 @@ def render(run_dir) -> Path:
     t = tables.build_tables(run)
     figs = {name: (caption, figures.png(fig)) for name, (caption, fig) in _figure_specs(run, t).items()}
     md, html = _render(run, t, figs, {k: f"figures/{k}.png" for k in figs})
-    tables.write_tables(run_dir, run)
+    tables.write_tables(run_dir, t)
     for name, (_, data) in figs.items():
         atomic_write_bytes(run_dir / "figures" / f"{name}.png", data)
     atomic_write_text(run_dir / "report.md", md)

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from harness.kitti import KittiError
+from harness.core.kitti import KittiError
 
 
 @dataclass(frozen=True)

@@ -29,11 +29,11 @@ from pathlib import Path
 import numpy as np
 
 from harness import data_identity, provenance, published_run, valset
+from harness.core.files import atomic_write_text, folder_lock, remove_temp_files
 from harness.jobs import interrupted, job_init
-from harness.kitti import atomic_write_text, folder_lock, remove_temp_files
+from harness.model_stages import checkpoint_of, export_stage, import_export
 from harness.predict_eval import predict_evaluate
 from harness.stages import Stages, file_digest
-from models.graph_cache import graph_code  # the export stage's key: a changed network exports again
 
 RUN_SCHEMA = "sotif-bench/run/1"
 GROUP_COLUMNS = ("weather", "time_of_day", "precipitation_class")
@@ -74,11 +74,6 @@ def _sibling(cfg: RunConfig, tag: str) -> str | None:
     if not cfg.warm_start or name not in WARM_FROM:
         return None
     return WARM_FROM[name] + tag[len(name):]  # the same draw's suffix
-
-
-def checkpoint_of(run_dir: Path, tag: str) -> Path:
-    """Where a run keeps the checkpoint of a model's training draw (``draw_tag``)."""
-    return run_dir / "models" / tag / "checkpoint.pt"
 
 
 def with_siblings(cfg: RunConfig, run_dir: Path, names: list[str], progress: bool = True) -> list[str]:
@@ -186,16 +181,6 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train
     return tinfo
 
 
-def export_stage(stages: Stages, run_dir: Path, tag: str, expected_model: str) -> None:
-    """Export the checkpoint of ``tag`` to ``models/<tag>.onnx`` (stage ``export_<tag>``)."""
-    from models.export import export_checkpoint
-    ckpt, onnx_path = checkpoint_of(run_dir, tag), run_dir / "models" / f"{tag}.onnx"
-    say = (lambda msg: print(stages.prefix + msg, flush=True)) if stages.progress else None
-    stages.run(f"export_{tag}", {"checkpoint": file_digest(ckpt), "graph_code": graph_code()},
-               lambda: {"onnx": str(export_checkpoint(ckpt, onnx_path, expected_model=expected_model, say=say))},
-               outputs=[onnx_path])
-
-
 def _checkpoint_meta(ckpt: Path) -> dict:
     from models.zoo import read_checkpoint
     state = read_checkpoint(ckpt)
@@ -271,7 +256,7 @@ def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_h
         raise KeyboardInterrupt("the run was interrupted")
     stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
     if published_run.source(cfg, tag):
-        tinfo = published_run.import_export(stages, cfg, run_dir, tag)
+        tinfo = import_export(stages, cfg, run_dir, tag)
     else:
         tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
     ort = _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads, sweep_hash)
@@ -553,7 +538,7 @@ def _wall_span(infos: dict[str, dict]) -> float | None:
 def data_stats(run_dir: Path) -> Path:
     """Per-frame point statistics of the SOTIF test data: count, max/mean range, ground share."""
     import pandas as pd
-    from harness.kitti import frame_path, read_frames_meta, read_points
+    from harness.core.kitti import frame_path, read_frames_meta, read_points
     data = run_dir / "data" / "sotif"
     meta = read_frames_meta(data / "meta" / "frames.csv")
     rows = []

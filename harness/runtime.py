@@ -13,11 +13,12 @@ from pathlib import Path
 
 import numpy as np
 
-from harness.infer import OnnxDetector, _frame_inputs, latency_summary, runtime_reason
-from harness.kitti import read_image_set
+from harness.core.kitti import read_image_set
+from harness.infer import OnnxDetector, frame_inputs, latency_summary, runtime_reason
 
 
-def _frames(data: Path, n: int) -> list[str]:
+def first_test_frames(data: Path, n: int) -> list[str]:
+    """The first ``n`` frame ids of the data set's test split (the frames the runtime probes time)."""
     return read_image_set(data / "ImageSets" / "test.txt")[:n]
 
 
@@ -64,9 +65,9 @@ def compare_torch_onnx(checkpoint: Path, onnx_path: Path, data: Path, n_frames: 
     model.eval()
     det = OnnxDetector(onnx_path)
     t_torch, t_ort, agree = [], [], []
-    fids = _frames(data, n_frames)
+    fids = first_test_frames(data, n_frames)
     for fid in fids:
-        points, _, image, l2i, _ = _frame_inputs(det, data, fid)
+        points, _, image, l2i, _ = frame_inputs(det, data, fid)
         args = [torch.from_numpy(points)]
         if det.info.uses_camera:
             args += [torch.from_numpy(image), torch.from_numpy(l2i)]
@@ -106,8 +107,8 @@ def compare_openvino(onnx_path: Path, data: Path, n_frames: int = 20) -> dict:
     except Exception as exc:  # noqa: BLE001 - any compile failure is the finding
         return {"error": f"compile: {_reason(exc)}"}
     t_ov, t_ort, agree = [], [], []
-    for fid in _frames(data, n_frames):
-        points, _, image, l2i, _ = _frame_inputs(ort_det, data, fid)
+    for fid in first_test_frames(data, n_frames):
+        points, _, image, l2i, _ = frame_inputs(ort_det, data, fid)
         try:  # the warm-up call also compiles for this input shape
             out_v, ms = _timed(lambda: ov_det(points, image, l2i))
         except Exception as exc:  # noqa: BLE001
@@ -142,8 +143,8 @@ def _vm_hwm_mb() -> float:
 def _main(argv) -> None:
     onnx_path, data, n = Path(argv[0]), Path(argv[1]), int(argv[2])
     det = OnnxDetector(onnx_path)
-    for fid in _frames(data, n):
-        points, _, image, l2i, _ = _frame_inputs(det, data, fid)
+    for fid in first_test_frames(data, n):
+        points, _, image, l2i, _ = frame_inputs(det, data, fid)
         det(points, image, l2i)
     print(json.dumps({"peak_memory_mb": _vm_hwm_mb()}))
 

@@ -12,8 +12,8 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from harness.kitti import KittiError
-from harness.tables import _read_json
+from harness.core.kitti import KittiError
+from harness.tables import read_json_object
 
 SAMPLE_PATTERNS = ("report.md", "index.html", "tables/*.csv", "figures/*.png")
 SAMPLE_DIRS = {Path(p).parent for p in SAMPLE_PATTERNS} - {Path(".")}
@@ -74,7 +74,7 @@ def publish_sample(run_dir, dest) -> Path:
     ``check_destination`` refuses."""
     run_dir, dest = Path(run_dir), Path(dest)
     summary_path = run_dir / "results.json"
-    if _read_json(summary_path).get("profile") == "quick":
+    if read_json_object(summary_path).get("profile") == "quick":
         raise KittiError(summary_path, "a quick-profile run (a smoke run: numbers meaningless) cannot be the sample")
     files = sample_files(run_dir)
     for needed in ("report.md", "index.html"):

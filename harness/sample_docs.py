@@ -26,7 +26,8 @@ from pathlib import Path
 from jinja2 import Environment, FileSystemLoader, StrictUndefined
 
 from harness import sample_numbers
-from harness.kitti import KittiError, atomic_write_text
+from harness.core.files import atomic_write_text
+from harness.core.kitti import KittiError
 from harness.sample_numbers import SampleTables
 
 ROOT = Path(__file__).resolve().parent.parent  # the checkout: README.md, docs/, reports/sample

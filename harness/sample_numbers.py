@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from harness.cells import num, span
-from harness.kitti import KittiError
+from harness.core.kitti import KittiError
 from harness.report import MODEL_LABELS
 
 AXES = {"rain": ("rain_rate_mmh", "rain", "mm/h", 1), "fog": ("fog_mor_m", "fog", "m", 0),  # sweep_axis ->

@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness.boxes import iou_bev
-from harness.kitti import KittiError, Labels, frame_path, read_calib, read_frames_meta, read_image_set, read_labels
-from simulator.scenario import DECEL_MPS2, EGO_DIMS, MARGIN_M, T_REACT_S, stopping_distance
+from harness.core.boxes import iou_bev
+from harness.core.braking import DECEL_MPS2, EGO_DIMS, MARGIN_M, T_REACT_S, stopping_distance
+from harness.core.kitti import KittiError, Labels, frame_path, read_calib, read_frames_meta, read_image_set, read_labels
 
 LIDAR_TO_FRONT_M = EGO_DIMS[0] / 2  # m, the ego's front bumper ahead of its roof LiDAR (above its centre)
 IOU_BEV_MIN = 0.5
@@ -43,7 +43,7 @@ META_COLUMNS = ("frame_id", "weather", "scenario_time_s", "lane_change_time_s", 
 def greedy_match(boxes: np.ndarray, scores: np.ndarray, gt: np.ndarray, iou_min: float = IOU_BEV_MIN,
                  overlap=iou_bev) -> np.ndarray:
     """(D,) bool: detection i (LiDAR box (D, 7)) matched a ground-truth box (G, 7) at IoU >= iou_min, the IoU
-    given by ``overlap`` ((D, 7), (G, 7) -> (D, G); BEV by default, ``harness.boxes.iou_3d`` for 3D).
+    given by ``overlap`` ((D, 7), (G, 7) -> (D, G); BEV by default, ``harness.core.boxes.iou_3d`` for 3D).
 
     Detections are taken by descending score; each takes its best still-free ground truth. Since
     higher scores go first, keeping only detections above any threshold leaves their matches unchanged.
@@ -104,12 +104,13 @@ def rear_distance(box: np.ndarray, lidar_to_front: float = LIDAR_TO_FRONT_M) -> 
 
 
 # ----------------------------------------------------------------------------- loaders
-def _split_ids(data_dir: Path, split: str) -> list[str]:
+def split_ids(data_dir: Path, split: str) -> list[str]:
+    """The frame ids of ``ImageSets/<split>.txt``; none when the data set has no such split."""
     path = data_dir / "ImageSets" / f"{split}.txt"
     return read_image_set(path) if path.is_file() else []
 
 
-def _lidar_labels(data_dir: Path, folder: Path, fid: str, with_score: bool) -> tuple[np.ndarray, np.ndarray, Labels]:
+def lidar_labels(data_dir: Path, folder: Path, fid: str, with_score: bool) -> tuple[np.ndarray, np.ndarray, Labels]:
     """(K, 7) LiDAR boxes, (K,) scores (ones for ground truth) and the labels of one label/result file."""
     labels = read_labels(folder / f"{fid}.txt", with_score=with_score or None)
     calib = read_calib(frame_path(data_dir, "calib", fid))
@@ -132,7 +133,7 @@ def operating_threshold(data_dir, predictions_dir, split: str = "val") -> tuple[
     """(threshold, source): the F1-optimal score threshold at BEV IoU 0.5 on ``split`` (a split name of
     ``data_dir`` or an ImageSets file listing frame ids), or the fallback."""
     data_dir, predictions_dir = Path(data_dir), Path(predictions_dir)
-    ids = read_image_set(split) if Path(split).suffix == ".txt" else _split_ids(data_dir, split)
+    ids = read_image_set(split) if Path(split).suffix == ".txt" else split_ids(data_dir, split)
     split = f"{Path(split).name} ({len(ids)} frames)" if Path(split).suffix == ".txt" else split
     present = [fid for fid in ids if (predictions_dir / f"{fid}.txt").is_file()]
     if not present:
@@ -144,9 +145,9 @@ def operating_threshold(data_dir, predictions_dir, split: str = "val") -> tuple[
     scores, matched, n_gt = [], [], 0
     label_dir = frame_path(data_dir, "label_2", "0").parent
     for fid in ids:
-        gt, _, gt_labels = _lidar_labels(data_dir, label_dir, fid, with_score=False)
+        gt, _, gt_labels = lidar_labels(data_dir, label_dir, fid, with_score=False)
         gt = gt[np.asarray(gt_labels.name, dtype=str) == "Car"] if len(gt) else gt
-        boxes, s, _ = _lidar_labels(data_dir, predictions_dir, fid, with_score=True)
+        boxes, s, _ = lidar_labels(data_dir, predictions_dir, fid, with_score=True)
         scores.append(s)
         matched.append(greedy_match(boxes, s, gt))
         n_gt += len(gt)
@@ -162,16 +163,16 @@ def gap_without_braking(d0: float, closing_speed_mps: float, dt_s: float) -> flo
     return d0 - max(closing_speed_mps, 0.0) * dt_s
 
 
-def _slow_car_track(data_dir: Path, predictions_dir: Path, after: pd.DataFrame, threshold: float):
+def slow_car_track(data_dir: Path, predictions_dir: Path, after: pd.DataFrame, threshold: float):
     """Per frame (time order): the slow car's GT box and whether the model detected it."""
     label_dir = frame_path(data_dir, "label_2", "0").parent
     hits, slow_boxes = [], []
     for fr in after.itertuples(index=False):
-        gt, _, _ = _lidar_labels(data_dir, label_dir, fr.frame_id, with_score=False)
+        gt, _, _ = lidar_labels(data_dir, label_dir, fr.frame_id, with_score=False)
         k = int(fr.slow_car_label_index)
         if k >= len(gt):
             raise KittiError(label_dir / f"{fr.frame_id}.txt", f"slow_car_label_index {k} but only {len(gt)} objects")
-        boxes, scores, _ = _lidar_labels(data_dir, predictions_dir, fr.frame_id, with_score=True)
+        boxes, scores, _ = lidar_labels(data_dir, predictions_dir, fr.frame_id, with_score=True)
         hits.append(slow_car_detected(boxes, scores, gt[k], threshold))
         slow_boxes.append(gt[k])
     return hits, slow_boxes
@@ -193,7 +194,7 @@ def _weather_row(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, th
            "stopping_distance_m": None, "pass": None}
     if math.isnan(t_lc) or after.empty:
         return row
-    hits, slow_boxes = _slow_car_track(data_dir, predictions_dir, after, threshold)
+    hits, slow_boxes = slow_car_track(data_dir, predictions_dir, after, threshold)
     ref = after.iloc[0]
     dv0, d0, t0 = float(ref["ego_speed_mps"] - ref["slow_car_speed_mps"]), rear_distance(slow_boxes[0]), float(ref["scenario_time_s"])
     row.update(distance_at_lane_change_m=d0, closing_speed_mps=dv0, stopping_distance_m=stopping_distance(dv0), **{"pass": False})
@@ -226,7 +227,7 @@ def sotif_view(data_dir, predictions_dir, split: str = "test", threshold: float 
         threshold, source = operating_threshold(data_dir, val_predictions_dir or predictions_dir)
     else:
         source = threshold_source
-    ids = _split_ids(data_dir, split)
+    ids = split_ids(data_dir, split)
     if not ids:
         raise KittiError(data_dir / "ImageSets" / f"{split}.txt", "no frames in the split")
     frames = meta[meta["frame_id"].isin(set(ids))]

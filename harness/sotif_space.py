@@ -33,7 +33,8 @@ from scipy.stats import binomtest
 
 from harness import sotif
 from harness.conditions import N_BINS, condition_labels
-from harness.kitti import KittiError
+from harness.core.braking import T_REACT_S, stopping_distance
+from harness.core.kitti import KittiError
 
 CONFIRM_K, CONFIRM_N = 3, 5  # hits within consecutive frames that confirm the slow car
 MIN_INSTANCES = 5  # fewer instances in a condition bin: too few to judge
@@ -63,7 +64,7 @@ def braking_margin(d0: float, closing_speed_mps: float, dt_s: float, latency_s: 
     """Metres to spare: gap left ``dt_s`` after d0 at a held closing speed, minus the stopping distance
     with ``latency_s`` added to the reaction time (negative: the ego cannot stop in time)."""
     gap = sotif.gap_without_braking(d0, closing_speed_mps, dt_s)
-    return gap - sotif.stopping_distance(closing_speed_mps, t_react=sotif.T_REACT_S + latency_s)
+    return gap - stopping_distance(closing_speed_mps, t_react=T_REACT_S + latency_s)
 
 
 def wilson_interval(successes: int, n: int, confidence: float = 0.95) -> tuple[float, float]:
@@ -143,7 +144,7 @@ def _instance(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, thres
     after = frames[(frames["scenario_time_s"] >= t_lc - 1e-6) & (frames["slow_car_label_index"] >= 0)]
     if np.isnan(t_lc) or after.empty:
         return row, pd.DataFrame()
-    hits, slow_boxes = sotif._slow_car_track(data_dir, predictions_dir, after, threshold)
+    hits, slow_boxes = sotif.slow_car_track(data_dir, predictions_dir, after, threshold)
     ref = after.iloc[0]
     dv0, d0 = float(ref["ego_speed_mps"] - ref["slow_car_speed_mps"]), sotif.rear_distance(slow_boxes[0])
     t0 = float(ref["scenario_time_s"])
@@ -152,7 +153,7 @@ def _instance(data_dir: Path, predictions_dir: Path, frames: pd.DataFrame, thres
         row["ideal_margin_m"] = braking_margin(d0, dv0, float(after.iloc[ideal]["scenario_time_s"]) - t0, 0.0)
     row["feasible"] = row["ideal_margin_m"] is not None and bool(row["ideal_margin_m"] >= 0)
     row.update(n_frames=len(after), detected=bool(any(hits)), closing_speed_mps=dv0,
-               stopping_distance_m=sotif.stopping_distance(dv0, t_react=sotif.T_REACT_S + latency_s), **{"pass": False})
+               stopping_distance_m=stopping_distance(dv0, t_react=T_REACT_S + latency_s), **{"pass": False})
     i = confirmed_index(hits, k, n)
     if i is not None:
         t = float(after.iloc[i]["scenario_time_s"])
@@ -179,7 +180,7 @@ def instance_view(data_dir, predictions_dir, threshold: float, latency_s: float,
     if not predictions_dir.is_dir():
         raise KittiError(predictions_dir, "prediction folder not found")
     meta = sotif.load_meta(data_dir)
-    ids = sotif._split_ids(data_dir, split)
+    ids = sotif.split_ids(data_dir, split)
     if not ids:
         raise KittiError(data_dir / "ImageSets" / f"{split}.txt", "no frames in the split")
     frames = meta[meta["frame_id"].isin(set(ids))].copy()

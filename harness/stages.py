@@ -17,15 +17,14 @@ import sys
 import time
 from pathlib import Path
 
+from harness.core.files import atomic_write_text, sha256_file
 from harness.dataset import config_hash
-from harness.kitti import atomic_write_text
 
 
 BIG_FILE = 1 << 20  # bytes: a stage's record may keep such files' size and mtime, to skip reading them
 
 
 def file_digest(path: Path) -> str:
-    from harness.infer import sha256_file
     return sha256_file(path)[:16] if Path(path).is_file() else "missing"
 
 
@@ -34,7 +33,7 @@ def _stat(path: Path) -> list[int]:
     return [st.st_size, st.st_mtime_ns]
 
 
-def _files(path: Path) -> list[Path]:
+def output_files(path: Path) -> list[Path]:
     """``path`` itself, or the files below the folder ``path`` but hidden ones (locks, journals, temp files)."""
     if path.is_file():
         return [path]
@@ -63,7 +62,7 @@ class Stages:
         return config_hash((self.record(name) or {}).get("outputs"))
 
     def hashes(self, outputs) -> dict[str, str]:
-        return {p.relative_to(self.root).as_posix(): file_digest(p) for o in outputs for p in _files(Path(o))}
+        return {p.relative_to(self.root).as_posix(): file_digest(p) for o in outputs for p in output_files(Path(o))}
 
     def run(self, name: str, key, fn, outputs=(), by_stat: bool = False) -> dict:
         """Run ``fn() -> dict`` unless the stage's record has the same key and its outputs are as it wrote them.
@@ -110,7 +109,7 @@ class Stages:
         if recorded is None:
             return ["its record holds no hashes of its outputs (an older version wrote it)"]
         missing = [f"{Path(o).relative_to(self.root)} is missing" for o in outputs if not Path(o).exists()]
-        now = {p.relative_to(self.root).as_posix() for o in outputs for p in _files(Path(o))}
+        now = {p.relative_to(self.root).as_posix() for o in outputs for p in output_files(Path(o))}
         problems = []
         for rel, expected in recorded.items():
             path = self.root / rel

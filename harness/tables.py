@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness import report_space, result_schema
-from harness.cells import DIFFS, DISTANCE_BINS, mark_capped, round_floats
-from harness.kitti import KittiError, atomic_write_text, read_frames_meta
+from harness import rain, report_space, result_schema
+from harness.cells import DIFFS, mark_capped, round_floats
+from harness.core.files import atomic_write_text
+from harness.core.kitti import KittiError, read_frames_meta
+from harness.groups import group_rows, group_table, headline_matrix, headline_with_ci, relative_table
 from harness.published_run import weights
 
 RUN_SCHEMA = "sotif-bench/run/1"
-CLEAN_PRESETS = ("ClearNoon", "ClearSunset")
-CORRUPT_CLASSES = ("rain", "wet")  # precipitation classes whose presets enter the mRR
 
 
 @dataclass
@@ -40,7 +40,8 @@ class Run:
         return list(self.summary["models"])
 
 
-def _read_json(path: Path) -> dict:
+def read_json_object(path: Path) -> dict:
+    """The JSON object in ``path``; a KittiError naming the file when it is missing, not JSON or not an object."""
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -69,12 +70,12 @@ def load_run(run_dir) -> Run:
     value of the wrong type raises ``KittiError`` naming the file and the key (``harness.result_schema``)."""
     run_dir = Path(run_dir)
     path = run_dir / "results.json"
-    summary = _read_json(path)
+    summary = read_json_object(path)
     _check_summary(path, summary)
     results = {}
     for name, m in summary["models"].items():
         res_path = run_dir / m["results"]
-        res = _read_json(res_path)
+        res = read_json_object(res_path)
         for key in ("kitti", "headline", "distance", "recall"):
             if key not in res:
                 raise KittiError(res_path, f"no {key!r} entry (not a harness.evaluate results file)")
@@ -132,89 +133,6 @@ def recall_table(results: dict) -> pd.DataFrame:
             paper = dict(zip(("roi@0.3", "rcnn@0.3", "roi@0.5", "rcnn@0.5"), 100.0 * np.array(PAPER_RECALL[name])))
             rows.append({"model": f"{name}: {PAPER}", **paper})
     return pd.DataFrame(rows, columns=["model", *[f"{s}@{t}" for s in ("roi", "rcnn") for t in ("0.3", "0.5", "0.7")]])
-
-
-# ----------------------------------------------------------------------------- per group
-def group_rows(res: dict, column: str) -> dict:
-    """``{value: row}`` of one results file grouped by ``column`` (empty when not evaluated)."""
-    by = res.get("groups_by", {})
-    if column in by:
-        return by[column]["rows"]
-    g = res.get("groups")
-    return g["rows"] if g and g.get("column") == column else {}
-
-
-def _group_record(row: dict) -> dict:
-    lo, hi = row["headline_ci95"]["3d"]
-    rec = row["recall"].get("rcnn", {})
-    return {"n_frames": row["n_frames"], "n_car": row["n_car"], "ap3d": row["headline"]["3d"]["0.7"],
-            "ap3d_lo": lo, "ap3d_hi": hi, "ap_bev": row["headline"]["bev"]["0.7"],
-            "ap3d_0.5": row["headline"]["3d"]["0.5"],
-            "kitti_mod_3d": row["kitti_moderate"]["3d"], "kitti_mod_bev": row["kitti_moderate"]["bev"],
-            **{f"ap3d_{b}m": row["distance"]["3d"]["0.7"][b] for b in DISTANCE_BINS},
-            # the boxes behind each AP (an AP40 over n boxes is at most (n - 1) / 40; older results lack them)
-            "n_gt_kitti_mod": row.get("n_gt_kitti_moderate", np.nan),
-            **{f"n_gt_{b}m": row.get("n_gt", {}).get(b, np.nan) for b in DISTANCE_BINS},
-            "recall@0.5": 100.0 * rec.get("0.5", np.nan), "recall@0.7": 100.0 * rec.get("0.7", np.nan)}
-
-
-def group_table(results: dict, column: str = "weather") -> pd.DataFrame:
-    """Long table: one row per (group value, model) with headline AP40 3D @0.7 and its 95% CI,
-    BEV, KITTI moderate, distance bins and RCNN recall."""
-    rows = [{column: value, "model": name, **_group_record(row)}
-            for name, res in results.items() for value, row in group_rows(res, column).items()]
-    if not rows:
-        return pd.DataFrame(columns=[column, "model"])
-    df = pd.DataFrame(rows)
-    order = list(dict.fromkeys(df[column]))
-    df[column] = pd.Categorical(df[column], categories=order, ordered=True)
-    return df.sort_values([column], kind="stable").astype({column: str}).reset_index(drop=True)
-
-
-def headline_matrix(long: pd.DataFrame, column: str = "weather", value: str = "ap3d") -> pd.DataFrame:
-    """Wide ``column`` x model matrix of one value of ``group_table`` (group order kept)."""
-    if long.empty:
-        return pd.DataFrame()
-    order = list(dict.fromkeys(long[column]))
-    models = list(dict.fromkeys(long["model"]))
-    wide = long.pivot(index=column, columns="model", values=value).reindex(index=order, columns=models)
-    wide.columns.name = None
-    return wide
-
-
-def headline_with_ci(long: pd.DataFrame, column: str = "weather") -> pd.DataFrame:
-    """The main table: per group value, each model's headline AP and its 95% interval."""
-    if long.empty:
-        return pd.DataFrame(columns=[column])
-    out = pd.DataFrame({column: list(dict.fromkeys(long[column]))})
-    for name in dict.fromkeys(long["model"]):
-        sub = long[long["model"] == name].set_index(column)
-        for key, suffix in (("ap3d", ""), ("ap3d_lo", " lo"), ("ap3d_hi", " hi")):
-            out[f"{name}{suffix}"] = out[column].map(sub[key])
-    return out
-
-
-# ----------------------------------------------------------------------------- robustness
-def corrupt_presets(weathers, meta: pd.DataFrame | None) -> list[str]:
-    """Rain/wet presets: by the meta's precipitation_class, else by name ("Rain", "Wet")."""
-    if meta is not None and {"weather", "precipitation_class"} <= set(meta.columns):
-        cls = meta.drop_duplicates("weather").set_index("weather")["precipitation_class"]
-        return [w for w in weathers if cls.get(w) in CORRUPT_CLASSES]
-    return [w for w in weathers if "Rain" in w or "Wet" in w]
-
-
-def relative_ap(matrix: pd.DataFrame, clean=CLEAN_PRESETS) -> tuple[pd.Series, pd.DataFrame]:
-    """(clean AP per model, AP / clean AP per weather and model); NaN where the clean AP is 0 or absent."""
-    present = [w for w in clean if w in matrix.index]
-    clean_ap = matrix.loc[present].mean(axis=0) if present else pd.Series(np.nan, index=matrix.columns)
-    return clean_ap, matrix.div(clean_ap.where(clean_ap > 0), axis=1)
-
-
-def relative_table(matrix: pd.DataFrame) -> pd.DataFrame:
-    """Per weather x model: headline AP relative to the model's clean AP (1.0 = as in clear weather)."""
-    if matrix.empty:
-        return pd.DataFrame()
-    return relative_ap(matrix)[1].rename_axis("weather").reset_index()
 
 
 # ----------------------------------------------------------------------------- SOTIF, runtime, data
@@ -430,7 +348,6 @@ def draws_table(run: Run) -> pd.DataFrame:
 def build_tables(run: Run) -> dict[str, pd.DataFrame]:
     """Every table of the report, by name (empty DataFrames for parts the run does not have)."""
     from harness.pairs_run import pair_tables
-    from harness import rain  # the rain story and robustness build on this module's group tables
     weather = group_table(run.results, "weather")
     matrix = headline_matrix(weather)
     sotif = sotif_table(run.summary, order=list(matrix.index))
@@ -454,13 +371,14 @@ def build_tables(run: Run) -> dict[str, pd.DataFrame]:
     return {"overview": overview_table(run, t), **t}
 
 
-def write_tables(run_dir, run: Run | None = None) -> dict[str, pd.DataFrame]:
+def write_tables(run_dir, tables: dict[str, pd.DataFrame] | None = None) -> dict[str, pd.DataFrame]:
     """Write every table as ``RUN/tables/<name>.csv``, ``.json`` (records) and ``.md``; returns them.
-    Floats are rounded as they are written (``cells.round_floats``); the Markdown shows capped and empty
-    AP cells as such (``cells.mark_capped``), the CSV and JSON keep the number beside its count column."""
-    run = run or load_run(run_dir)
+    ``tables`` are those ``build_tables`` built (the report's, so that a render builds them once); built
+    from the run's files when not given. Floats are rounded as they are written (``cells.round_floats``);
+    the Markdown shows capped and empty AP cells as such (``cells.mark_capped``), the CSV and JSON keep the
+    number beside its count column."""
     out = Path(run_dir) / "tables"
-    tables = build_tables(run)
+    tables = build_tables(load_run(run_dir)) if tables is None else tables
     for name, df in tables.items():
         df = round_floats(df)
         atomic_write_text(out / f"{name}.csv", df.to_csv(index=False, lineterminator="\n"))

@@ -32,9 +32,9 @@ import torch.multiprocessing as mp
 from tqdm import tqdm
 
 from harness.augment import AugmentConfig, augment
+from harness.core.files import atomic_write_bytes
 from harness.dataset import KittiDataset, config_hash, dataset_hash, has_split
 from harness.gt_database import load_or_build
-from harness.kitti import atomic_write_bytes
 from models import zoo
 from models.base import Detector
 
@@ -242,7 +242,7 @@ def validation_ap(net, data: Path, max_frames: int | None = None) -> dict:
     """AP40 (3D / BEV, IoU 0.7) of the eager model on the ``val`` split with the project's KITTI
     evaluator: KITTI moderate and the headline (all distances, height filter off)."""
     from harness.eval_kitti import build_eval_set, kitti_ap
-    from harness.evaluate import _summary
+    from harness.evaluate import headline_summary
     from harness.infer import boxes_to_results
 
     ds = KittiDataset(data, "val", with_image=getattr(net, "uses_camera", False))
@@ -258,7 +258,7 @@ def validation_ap(net, data: Path, max_frames: int | None = None) -> dict:
             dt.append(boxes_to_results(out[0].cpu().numpy(), out[1].cpu().numpy(), calib, (375, 1242)))
     es = build_eval_set(gt, dt)
     ap = kitti_ap(es)
-    head = _summary(es)["headline"]
+    head = headline_summary(es)["headline"]
     return {"3d_moderate": ap["3d"]["0.7"]["R40"]["moderate"], "bev_moderate": ap["bev"]["0.7"]["R40"]["moderate"],
             "3d_all": head["3d"]["0.7"], "bev_all": head["bev"]["0.7"], "frames": n}
 

@@ -14,7 +14,8 @@ import json
 from pathlib import Path
 
 from harness import predict_eval
-from harness.kitti import atomic_write_text, read_frames_meta
+from harness.core.files import atomic_write_text
+from harness.core.kitti import read_frames_meta
 from harness.stages import Stages, file_digest
 
 VAL_SEED_OFFSET = 2000  # the training set is simulated with seed + 1000, the SOTIF set with seed

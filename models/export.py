@@ -26,7 +26,7 @@ import numpy as np
 import onnx
 import torch
 
-from harness.kitti import atomic_write_bytes
+from harness.core.files import atomic_write_bytes
 from models import graph_cache
 from models.base import Detector
 

@@ -9,9 +9,10 @@ buffers, and the traced graph holds each of them as an initializer named by its 
 in the optimiser, which ``models.export`` runs on every export, cached or not. So an entry is the
 traced graph with the weights' data removed; an export fills in its model's tensors by name.
 
-- ``graph_code() -> str``: a digest of the ``models`` package's sources.
+- ``graph_code() -> str``: a digest of the code of the ``models`` package's sources (``code_text``:
+  comments, docstrings, layout and the module paths of imports from harness/simulator left out).
 - ``cache_key(model) -> str | None``: the digest of what the traced graph depends on: the code
-  (``graph_code``, and the file of the model's class), the class, its config (``asdict``), the
+  (``graph_code``, and the code of the model's class's file), the class, its config (``asdict``), the
   torch / onnx / onnxscript / onnx_ir versions and the opset; None for a model whose config is
   not a dataclass (not cached).
 - ``cache_dir() -> Path | None``: ``$SOTIF_BENCH_GRAPH_CACHE`` if set ("off" disables the
@@ -29,6 +30,7 @@ ignored.
 """
 from __future__ import annotations
 
+import ast
 import dataclasses
 import hashlib
 import inspect
@@ -40,19 +42,37 @@ from pathlib import Path
 import onnx
 import torch
 
-from harness.kitti import atomic_write_bytes
+from harness.core.files import atomic_write_bytes
 
 ENV = "SOTIF_BENCH_GRAPH_CACHE"
 FORMAT = 1  # of an entry; a new layout changes every key
+PACKAGE = Path(__file__).parent
+OUTSIDE = ("harness", "simulator")  # project packages whose module paths are not code of the graph
 
 
-def graph_code() -> str:
-    """A digest of the ``models`` package's sources. A checkpoint's ONNX graph is a function of the
-    checkpoint and this code, so a changed network or exporter exports again."""
+def graph_code(folder: Path = PACKAGE) -> str:
+    """A digest of the code of the ``models`` package. A checkpoint's ONNX graph is a function of the
+    checkpoint and this code, so a changed network or exporter exports again; an edit that changes
+    no code (a comment, a docstring, a moved harness name) does not."""
     digest = hashlib.sha256()
-    for path in sorted(Path(__file__).parent.glob("*.py")):
-        digest.update(path.name.encode() + b"\0" + path.read_bytes())
+    for path in sorted(Path(folder).glob("*.py")):
+        digest.update(path.name.encode() + b"\0" + code_text(path.read_text(encoding="utf-8")).encode())
     return digest.hexdigest()[:16]
+
+
+def code_text(source: str) -> str:
+    """``source`` as the code it runs: without comments, docstrings and layout, and with the module
+    path of a ``from`` import out of harness or simulator left out (the graph does not depend on
+    which of their modules holds a name, and their sources are not in the digest either)."""
+    tree = ast.parse(source)
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)):
+            first = node.body[0] if node.body else None
+            if isinstance(first, ast.Expr) and isinstance(first.value, ast.Constant) and isinstance(first.value.value, str):
+                node.body = node.body[1:] or [ast.Pass()]
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module.split(".")[0] in OUTSIDE:
+            node.module = "project"
+    return ast.unparse(tree)
 
 
 def _versions() -> dict[str, str]:
@@ -64,9 +84,9 @@ def cache_key(model: torch.nn.Module, opset: int) -> str | None:
     if not dataclasses.is_dataclass(cfg) or isinstance(cfg, type):
         return None
     cls = type(model)
-    source = Path(inspect.getsourcefile(cls)).read_bytes()
+    source = code_text(Path(inspect.getsourcefile(cls)).read_text(encoding="utf-8"))
     ident = {"format": FORMAT, "code": graph_code(), "class": f"{cls.__module__}.{cls.__qualname__}",
-             "class_file": hashlib.sha256(source).hexdigest(), "config": dataclasses.asdict(cfg),
+             "class_file": hashlib.sha256(source.encode()).hexdigest(), "config": dataclasses.asdict(cfg),
              "structure": _structure(model), "versions": _versions(), "opset": opset}
     return hashlib.sha256(json.dumps(ident, sort_keys=True, default=repr).encode()).hexdigest()[:32]
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from harness.types import Sample
+from harness.core.types import Sample
 from models.anchor_head import HeadConfig
 from models.base import Detector, mean_over_frames
 from models.image_branch import ImageBranch, ImageBranchConfig, PointFusion, PointFusionConfig

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from harness.types import Sample
+from harness.core.types import Sample
 from models.anchor_head import HeadConfig
 from models.base import Detector, mean_over_frames
 from models.box_frame import inside_local, to_box_frame

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
-from harness.types import Sample
+from harness.core.types import Sample
 from models.base import Detector, mean_over_frames
 from models.box_frame import inside_boxes
 from models.nms import nms_in_order, ranked_topk, select_ranked

@@ -54,7 +54,7 @@ def _fps_step(rows, dist: Tensor, last: Tensor) -> tuple[Tensor, Tensor]:
     return dist, torch.argmax(dist, dim=1)
 
 
-def _fps_graph(xyz: Tensor, num: int) -> Tensor:
+def fps_loop(xyz: Tensor, num: int) -> Tensor:
     """FPS as a while_loop (exports to an ONNX Loop). xyz (B, N, 3) -> (B, num) long."""
     rows = _rows(xyz)
     dist, idx = _fps_start(xyz, num)
@@ -74,7 +74,7 @@ def _fps_graph(xyz: Tensor, num: int) -> Tensor:
 
 
 def _fps_eager(xyz: Tensor, num: int) -> Tensor:
-    """Same arithmetic as _fps_graph as a Python loop (several times faster in eager mode)."""
+    """Same arithmetic as fps_loop as a Python loop (several times faster in eager mode)."""
     rows = _rows(xyz)
     dist, idx = _fps_start(xyz, num)
     last = idx[:, 0]
@@ -95,7 +95,7 @@ def farthest_point_sample(xyz: Tensor, num: int) -> Tensor:
     if xyz.dim() == 3 and num > xyz.shape[1]:
         raise ValueError(f"farthest_point_sample: {num} samples from {xyz.shape[1]} points per batch row")
     batch = xyz if xyz.dim() == 3 else xyz[None]
-    idx = _fps_graph(batch, num) if tracing() else _fps_eager(batch, num)
+    idx = fps_loop(batch, num) if tracing() else _fps_eager(batch, num)
     return idx if xyz.dim() == 3 else idx[0, : torch.sym_min(xyz.shape[0], num)]
 
 

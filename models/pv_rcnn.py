@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from harness.types import Sample
+from harness.core.types import Sample
 from models.anchor_head import HeadConfig
 from models.base import Detector, mean_over_frames
 from models.box_frame import inside_boxes

@@ -21,7 +21,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from harness.boxes import iou_3d
+from harness.core.boxes import iou_3d
 from models.anchor_head import AnchorHead
 from models.box_frame import inside_boxes, rotate_to_box_frame
 from models.nms import select_ranked
@@ -145,7 +145,7 @@ def decode_canonical(deltas: Tensor, rois: Tensor) -> Tensor:
 
 
 def box_corners(boxes: Tensor) -> Tensor:
-    """(S, 7) -> (S, 8, 3) corners (same order as harness.boxes.corners_3d)."""
+    """(S, 7) -> (S, 8, 3) corners (same order as harness.core.boxes.corners_3d)."""
     unit = boxes.new_tensor([[0.5, 0.5, -0.5], [-0.5, 0.5, -0.5], [-0.5, -0.5, -0.5],
                              [0.5, -0.5, -0.5], [0.5, 0.5, 0.5], [-0.5, 0.5, 0.5],
                              [-0.5, -0.5, 0.5], [0.5, -0.5, 0.5]])  # (8, 3)

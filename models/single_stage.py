@@ -10,11 +10,11 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from harness.types import Sample
+from harness.core.types import Sample
 from models.anchor_head import AnchorHead, HeadConfig
-from models.multiclass_head import make_head
 from models.backbone2d import BEVBackbone
 from models.base import Detector, mean_over_frames
+from models.multiclass_head import make_head
 from models.voxel_backbone import VoxelBackboneConfig, output_shape
 from models.voxelize import Grid
 

@@ -20,7 +20,8 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from harness import kitti
+from harness.core import kitti
+from harness.core.files import atomic_write_text, folder_lock, remove_temp_files, sha256_file
 from simulator.camera import CameraSpec
 from simulator.frame import FrameJob, instance_run, make_frame, row_columns
 from simulator.labels import LabelConfig
@@ -166,14 +167,6 @@ def plan_jobs(cfg: GenerateConfig) -> list[FrameJob]:
     return [FrameJob(i, f"{i:06d}", w, k, "val" if i in val else other, max_step) for i, (w, k) in enumerate(specs)]
 
 
-def sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def content_digest(files: dict[str, str]) -> str:
     """SHA-256 over the sorted (relative path, file SHA-256) pairs of a data set: its identity. Two sets
     with this digest equal hold the same bytes (meta/dataset.json, which carries it, is not among them)."""
@@ -206,7 +199,7 @@ def _resumable(root: Path, job: FrameJob, digest: str) -> dict | None:
         return None
     for rel, digest_file in rec.get("files", {}).items():
         p = root / rel
-        if not p.is_file() or sha256(p) != digest_file:
+        if not p.is_file() or sha256_file(p) != digest_file:
             return None
     return rec
 
@@ -306,8 +299,8 @@ def run_job(args) -> dict:
     if rec is not None:
         return rec
     row, files = make_frame(root, cfg, job)
-    rec = {"config": digest, "row": row, "files": {str(p.relative_to(root)): sha256(p) for p in files}}
-    kitti.atomic_write_text(_record_path(root, job.frame_id), json.dumps(rec, indent=1, sort_keys=True))
+    rec = {"config": digest, "row": row, "files": {str(p.relative_to(root)): sha256_file(p) for p in files}}
+    atomic_write_text(_record_path(root, job.frame_id), json.dumps(rec, indent=1, sort_keys=True))
     return rec
 
 
@@ -320,16 +313,16 @@ def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None
                 df["frame_id"].tolist(), cfg.lidar.mount_height)
     written.append(kitti.write_frames_meta(root / "meta" / "frames.csv", df))
     files = {rel: h for r in records for rel, h in r["files"].items()}
-    files.update({str(p.relative_to(root)): sha256(p) for p in written})
+    files.update({str(p.relative_to(root)): sha256_file(p) for p in written})
     meta = {"generator": "sotif-bench simulator", "generator_version": cfg.generator_version, "seed": cfg.seed,
             "config": cfg.as_dict(), "config_sha256": cfg.digest(), "sensors": {"lidar": cfg.lidar.as_dict(),
             "camera": cfg.camera.as_dict()}, "n_frames": len(df),
             "splits": {s: int((df["split"] == s).sum()) for s in ("train", "val", "test")},
             "files": dict(sorted(files.items())), "content_sha256": content_digest(files)}
-    kitti.atomic_write_text(root / "meta" / "dataset.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
+    atomic_write_text(root / "meta" / "dataset.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
 
 
-def _worker_init() -> None:
+def worker_init() -> None:
     """Keep freed buffers in the worker's heap (glibc): a scan allocates dozens of MB-sized
     temporaries, and returning each to the OS costs page faults on the next frame (~10 % of
     a frame). Only the worker processes this module starts are tuned; elsewhere a no-op."""
@@ -382,8 +375,8 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     planned = {job.frame_id for _, _, job, _ in jobs}
     check_output(root, cfg, planned, force)
     (root / "meta" / "frames").mkdir(parents=True, exist_ok=True)
-    with kitti.folder_lock(root, "simulate"):  # one simulate per folder: the temp files below are its own
-        kitti.remove_temp_files(root)  # those a killed simulate left
+    with folder_lock(root, "simulate"):  # one simulate per folder: the temp files below are its own
+        remove_temp_files(root)  # those a killed simulate left
         remove_stale_frames(root, planned)
         _simulate_frames(root, cfg, preset, jobs, workers, progress)
     return root
@@ -399,7 +392,7 @@ def _simulate_frames(root: Path, cfg: GenerateConfig, preset: str, jobs: list, w
     else:
         chunk = max(1, len(jobs) // (workers * 8))
         method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
-        with mp.get_context(method).Pool(workers, initializer=_worker_init) as pool:
+        with mp.get_context(method).Pool(workers, initializer=worker_init) as pool:
             for rec in pool.imap_unordered(run_job, jobs, chunksize=chunk):
                 records.append(rec)
                 bar.update()

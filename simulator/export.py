@@ -9,8 +9,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from harness import kitti  # noqa: E402
-from harness.boxes import corners_3d  # noqa: E402
+from harness.core import kitti  # noqa: E402
+from harness.core.boxes import corners_3d  # noqa: E402
+from harness.core.files import atomic_write_text  # noqa: E402
 
 BOX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4], [0, 4], [1, 5], [2, 6], [3, 7]])
 CLASS_COLOURS = {"Car": (0, 200, 0), "Van": (0, 120, 255), "Truck": (255, 140, 0), "DontCare": (150, 150, 150)}
@@ -40,7 +41,7 @@ def export_ply(root: Path, frame_id: str, out: Path) -> Path:
     points = kitti.read_points(kitti.frame_path(root, "velodyne", frame_id))
     labels = kitti.read_labels(kitti.frame_path(root, "label_2", frame_id))
     calib = kitti.read_calib(kitti.frame_path(root, "calib", frame_id))
-    return kitti.atomic_write_text(out, ply_text(points, labels.to_lidar(calib), list(labels.name)))
+    return atomic_write_text(out, ply_text(points, labels.to_lidar(calib), list(labels.name)))
 
 
 def preview(root: Path, frame_id: str, out: Path, title: str = "") -> Path:

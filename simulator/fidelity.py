@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.boxes import points_in_boxes
+from harness.core.boxes import points_in_boxes
 from simulator import effects
 from simulator.weather import WeatherPreset, lidar_fog_extinction, rain_rate_mmh
 

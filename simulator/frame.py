@@ -19,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import kitti
+from harness.core import kitti
+from harness.core.files import atomic_write_bytes
 from simulator import fidelity
 from simulator.camera import render
 from simulator.labels import frame_labels, lidar_boxes
@@ -205,7 +206,7 @@ def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:
                    np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 2, job.index]), cfg.camera)
     labels, rows = frame_labels(scene, state.vehicles, state.pose, cfg.lidar.mount_height, calib, cfg.labels)
     files = [kitti.write_points(kitti.frame_path(root, "velodyne", job.frame_id), points),
-             kitti.atomic_write_bytes(kitti.frame_path(root, "image_2", job.frame_id), encode_png(image)),
+             atomic_write_bytes(kitti.frame_path(root, "image_2", job.frame_id), encode_png(image)),
              kitti.write_calib(kitti.frame_path(root, "calib", job.frame_id), calib),
              kitti.write_labels(kitti.frame_path(root, "label_2", job.frame_id), labels)]
     return {**_row(cfg, job, state, len(points), rows, weather), **_fidelity(scene, cfg, state, points, weather)}, files

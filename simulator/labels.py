@@ -18,8 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from harness.boxes import box_to_lidar, corners_3d, wrap_angle
-from harness.kitti import Calib, Labels
+from harness.core.boxes import box_to_lidar, corners_3d, wrap_angle
+from harness.core.kitti import Calib, Labels
 from simulator.lidar import Pose
 from simulator.raycast import RayScene, rays_hit_triangles
 from simulator.vehicles import Vehicle

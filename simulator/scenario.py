@@ -7,6 +7,7 @@ the slow car as its target and decelerates. 10 Hz simulation, every 5th step rec
 
 Training scenes never reproduce it: they are independent snapshots of random traffic (their
 own random streams and world clutter), not the scripted cut-out with its fixed cars.
+The braking rule of the decision window is the floor's (``harness.core.braking``).
 """
 from __future__ import annotations
 
@@ -15,21 +16,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from harness.core.braking import EGO_DIMS, stopping_distance
 from simulator.lidar import Pose
 from simulator.road import RoadConfig, lane_center, road_to_world
 from simulator.vehicles import Vehicle, sample_body, sample_dims, sample_paint
-
-EGO_DIMS = (4.7, 1.85, 1.5)
-T_REACT_S = 1.0  # s, driver/system reaction time before braking starts
-DECEL_MPS2 = 4.0  # m/s^2, comfortable-to-firm braking deceleration
-MARGIN_M = 2.0  # m, gap left after braking
-
-
-def stopping_distance(closing_speed_mps: float, t_react: float = T_REACT_S, decel: float = DECEL_MPS2,
-                      margin: float = MARGIN_M) -> float:
-    """Distance (m) the ego needs to match the slow car's speed; a non-closing ego needs only the margin."""
-    dv = max(float(closing_speed_mps), 0.0)
-    return dv * t_react + dv * dv / (2.0 * decel) + margin
 
 
 @dataclass(frozen=True)

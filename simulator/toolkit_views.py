@@ -27,7 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from harness import kitti
+from harness.core import kitti
+from harness.core.files import atomic_write_text
 
 TESTING_KINDS = ("velodyne", "image_2", "calib")
 VIEW_ROOT = "test_as_val"
@@ -59,7 +60,7 @@ def write_planes(root: Path, ids: list[str], mount_height: float) -> None:
         text = plane_text(road_plane(kitti.read_calib(kitti.frame_path(root, "calib", fid)), mount_height))
         path = folder / f"{fid}.txt"
         if not path.is_file() or path.read_text() != text:
-            kitti.atomic_write_text(path, text)
+            atomic_write_text(path, text)
 
 
 def _link(path: Path, target: str) -> None:

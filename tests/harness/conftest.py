@@ -4,8 +4,8 @@ import onnx
 import pytest
 from onnx import TensorProto, helper
 
-from harness import kitti
-from harness.kitti import Labels
+from harness.core import kitti
+from harness.core.kitti import Labels
 
 
 def car_boxes(rng, n):

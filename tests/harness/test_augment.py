@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from harness.augment import AugmentConfig, augment, flip_y, rotate_z, scale
-from harness.boxes import points_in_boxes
+from harness.core.boxes import points_in_boxes
 from harness.dataset import synthetic_sample
 
 

@@ -7,7 +7,7 @@ from tqdm import tqdm
 
 from harness import cli
 from harness.cli import build_parser, main
-from harness.kitti import write_image_set
+from harness.core.kitti import write_image_set
 
 
 def test_version(capsys):

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from harness import kitti
-from harness.boxes import points_in_boxes
+from harness.core import kitti
+from harness.core.boxes import points_in_boxes
 from harness.dataset import KittiDataset, dataset_hash, synthetic_sample, write_synthetic_dataset
 
 

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 
 from harness import notes, sample_docs
-from harness.kitti import KittiError
+from harness.core.kitti import KittiError
 from harness.sample_docs import DOCUMENTS, ROOT, generated, render_blocks, update, write_docs
 from harness.sample_numbers import MissingTable, num, span
 

@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from harness.boxes import iou_3d, iou_bev
+from harness.core.boxes import iou_3d, iou_bev
+from harness.core.kitti import Labels, kitti_calib
 from harness.eval_kitti import (DIFFICULTIES, Filter, build_eval_set, frame_overlaps, get_thresholds,
                                 image_box_overlap,
                                 kitti_ap, precision_recall)
-from harness.kitti import Labels, kitti_calib
 
 
 def labels(rows, score=None, alpha=None):

@@ -6,8 +6,8 @@ import shutil
 import numpy as np
 import pytest
 
-from harness import kitti
 from harness.cli import main
+from harness.core import kitti
 from harness.evaluate import evaluate, recall_at_iou
 
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from harness import evaluate as ev
-from harness import kitti
+from harness.core import kitti
 from tests.harness.conftest import make_dataset
 from tests.harness.test_evaluate_cli import copy_as_predictions
 

@@ -6,8 +6,9 @@ import pandas as pd
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from PIL import Image
 
-from harness import figures, kitti, rain_figures
-from harness.kitti import Labels
+from harness import figures, rain_figures
+from harness.core import kitti
+from harness.core.kitti import Labels
 
 
 def _png_size(data: bytes) -> tuple[int, int]:

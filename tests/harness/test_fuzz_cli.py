@@ -5,8 +5,8 @@ import itertools
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from harness import kitti
 from harness.cli import main
+from harness.core import kitti
 from tests.harness.conftest import centroid_detector, make_dataset
 
 FIELD = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-5, 5).map(str),

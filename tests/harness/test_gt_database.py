@@ -5,8 +5,8 @@ import pytest
 import shapely
 
 from harness import gt_database as gtdb
-from harness import kitti
-from harness.boxes import corners_3d, points_in_boxes
+from harness.core import kitti
+from harness.core.boxes import corners_3d, points_in_boxes
 from harness.dataset import KittiDataset, synthetic_sample, write_synthetic_dataset
 from harness.gt_database import GtSamplingConfig, build_database, load_or_build, sample_objects
 

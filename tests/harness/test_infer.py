@@ -2,7 +2,7 @@ import json
 import numpy as np
 import pytest
 
-from harness import kitti
+from harness.core import kitti
 from harness.infer import ContractError, OnnxDetector, check_contract, predict
 
 
@@ -228,7 +228,7 @@ def test_predict_into_a_folder_of_other_results(make_onnx, tmp_path, dataset):
     res = kitti.read_labels(out / "000000.txt", with_score=True)
     np.testing.assert_allclose(res.to_lidar(calib)[0, :3], pts[:, :3].mean(axis=0), atol=2e-3)
     assert (out / "notes.md").read_text() == "mine"
-    from harness.kitti import folder_lock
+    from harness.core.files import folder_lock
     with folder_lock(out, "predict"):  # another predict is writing there
         with pytest.raises(ValueError, match=r"pred: another sotif-bench predict is writing to this folder"):
             predict(onnx_path, dataset, out, progress=False)

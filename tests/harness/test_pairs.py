@@ -4,8 +4,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from harness.core.kitti import Labels
 from harness.eval_kitti import build_eval_set
-from harness.kitti import Labels
 from harness.pairs import headline_ap, paired_comparison, unit_frames, val_ap
 
 

@@ -4,7 +4,9 @@ import json
 import pandas as pd
 import pytest
 
-from harness import kitti, pairs_run
+from harness import pairs_run
+from harness.core import kitti
+from harness.core.files import atomic_write_text
 from tests.harness.test_report import make_run
 
 
@@ -67,7 +69,7 @@ def test_val_ap_is_compared_on_the_val_set_when_the_run_has_one(run_dir):
     import shutil
     shutil.copytree(run_dir / "data" / "sotif", run_dir / "data" / "val")
     ids = sorted(p.stem for p in (run_dir / "data" / "val" / "training" / "label_2").glob("*.txt"))
-    kitti.atomic_write_text(run_dir / "data" / "val_frames.txt", "".join(f"{i}\n" for i in ids))
+    atomic_write_text(run_dir / "data" / "val_frames.txt", "".join(f"{i}\n" for i in ids))
     for name in ("alpha", "beta"):
         for folder in ("predictions", "predictions_val"):
             shutil.copytree(run_dir / folder / name, run_dir / "predictions_valset" / name, dirs_exist_ok=True)

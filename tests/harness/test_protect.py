@@ -4,8 +4,8 @@ import json
 
 import torch
 
-from harness import kitti
 from harness.cli import main
+from harness.core import kitti
 from harness.dataset import write_synthetic_dataset
 from models import zoo
 

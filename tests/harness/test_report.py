@@ -7,10 +7,12 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import kitti, report
+from harness import report
 from harness.cli import main
+from harness.core import kitti
+from harness.core.files import atomic_write_text
+from harness.core.kitti import KittiError, Labels
 from harness.evaluate import evaluate, write_results
-from harness.kitti import KittiError, Labels
 from harness.sotif import sotif_view
 
 WEATHERS = {"ClearNoon": ("Noon", "dry"), "ClearSunset": ("Sunset", "dry"), "HardRainNight": ("Night", "rain")}
@@ -80,7 +82,7 @@ def make_run(root, models=(("alpha", 0.1, False), ("beta", 0.6, True)), sotif_co
     doc = {"schema": "sotif-bench/run/1", "profile": "quick", "created": "2026-01-01T00:00:00+00:00", "models": summary,
            "data": {"n_test_frames": 9, "n_val_frames": 3, "n_train_frames": 40, "stats": "tables/data_stats.csv"},
            "stage_seconds": {"simulate_sotif": 12.5, "train_alpha": 30.0}}
-    kitti.atomic_write_text(root / "results.json", json.dumps(doc))
+    atomic_write_text(root / "results.json", json.dumps(doc))
     return root
 
 
@@ -217,7 +219,7 @@ def test_navigation_lists_the_sections_in_their_order(rendered):
 def test_only_a_quick_run_has_the_banner(tmp_path):
     root = make_run(tmp_path)
     doc = json.loads((root / "results.json").read_text())
-    kitti.atomic_write_text(root / "results.json", json.dumps({**doc, "profile": "default"}))
+    atomic_write_text(root / "results.json", json.dumps({**doc, "profile": "default"}))
     report.render(root)
     assert "Smoke run" not in (root / "index.html").read_text() and "Smoke run" not in (root / "report.md").read_text()
 

@@ -4,7 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import kitti, report, report_space
+from harness import report, report_space
+from harness.core.files import atomic_write_text
 from harness.run_space import latency_s, space_summary
 from tests.harness.test_report import make_run
 
@@ -34,7 +35,7 @@ def space_run(tmp_path_factory):
     for name, m in doc["models"].items():
         m.update(space_summary(root, name, 0.5, m["runtime"]))  # the SOTIF set: one instance per weather
         m["sotif_space"]["sweep"] = synthetic_view(rng)
-    kitti.atomic_write_text(root / "results.json", json.dumps(doc))
+    atomic_write_text(root / "results.json", json.dumps(doc))
     report.render(root)
     return root, doc
 

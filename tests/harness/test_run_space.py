@@ -96,7 +96,7 @@ def test_the_model_summary_carries_the_scenario_space(tmp_path, monkeypatch):
 
 def test_the_sweep_set_is_predicted_and_evaluated_by_condition(tmp_path):
     import numpy as np
-    from harness import kitti
+    from harness.core import kitti
     from harness.run_space import SWEEP_GROUPS, predict_eval_sweep
     from tests.harness.conftest import centroid_detector, make_dataset
     data = make_dataset(tmp_path / "data" / "sweep", n_frames=4, weathers=("Sweep",))

@@ -7,7 +7,7 @@ import pytest
 
 from harness import report
 from harness.cli import main
-from harness.kitti import KittiError
+from harness.core.kitti import KittiError
 from harness.sample import MANIFEST, publish_sample, sample_files
 from tests.harness.test_report import make_run
 

@@ -2,8 +2,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import kitti, sotif
-from harness.kitti import KittiError, Labels
+from harness import sotif
+from harness.core import kitti
+from harness.core.kitti import KittiError, Labels
 
 CALIB = kitti.kitti_calib()
 SLOW = np.array([0.0, 0.0, -0.9, 4.75, 1.83, 1.45, 0.0], np.float32)  # x filled in per frame
@@ -41,12 +42,6 @@ def make_sotif(root, weathers, ego=25.0, slow=60 / 3.6, t_lc=1.0, n=5, ego_speed
     kitti.write_image_set(root / "ImageSets" / "test.txt", [r["frame_id"] for r in rows])
     kitti.write_frames_meta(root / "meta" / "frames.csv", pd.DataFrame(rows))
     return root, pred_dir
-
-
-def test_stopping_distance_by_hand():
-    assert sotif.stopping_distance(10.0) == pytest.approx(10.0 * 1.0 + 100.0 / 8.0 + 2.0)
-    assert sotif.stopping_distance(-3.0) == pytest.approx(2.0)  # not closing in: margin only
-    assert sotif.stopping_distance(0.0, margin=0.0) == 0.0
 
 
 def test_detected_never_and_below_threshold(tmp_path):

@@ -4,8 +4,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import kitti, sotif, sotif_space
+from harness import sotif, sotif_space
 from harness.conditions import condition_labels
+from harness.core import kitti
 from tests.harness.test_sotif import OTHER, SLOW, _write_frame, make_sotif
 
 FRONT = 4.7 / 2 + 4.75 / 2  # LiDAR to the ego's bumper plus half the slow car: rear gap = x - FRONT

@@ -4,8 +4,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness import rain, tables
-from harness.kitti import KittiError
+from harness import groups, rain, tables
+from harness.core.kitti import KittiError
 
 WEATHERS = ["ClearNoon", "WetNoon", "HardRainNoon", "ClearSunset", "CloudyNight", "SoftRainNight"]
 BINS = ("0-30", "30-50", "50-80")
@@ -57,9 +57,9 @@ def test_kitti_and_recall_tables():
 def test_group_table_and_matrix_keep_weather_order():
     rng = np.random.default_rng(1)
     results = {"a": fake_result(rng), "b": fake_result(rng)}
-    long = tables.group_table(results, "weather")
+    long = groups.group_table(results, "weather")
     assert len(long) == 2 * len(WEATHERS)
-    m = tables.headline_matrix(long)
+    m = groups.headline_matrix(long)
     assert list(m.index) == WEATHERS and list(m.columns) == ["a", "b"]
     for w in WEATHERS:
         for name in ("a", "b"):
@@ -69,9 +69,9 @@ def test_group_table_and_matrix_keep_weather_order():
             assert rec["ap3d_lo"] == r["headline_ci95"]["3d"][0]
             assert rec["ap3d_30-50m"] == r["distance"]["3d"]["0.7"]["30-50"]
             assert rec["recall@0.7"] == pytest.approx(100 * r["recall"]["rcnn"]["0.7"])
-    wide = tables.headline_with_ci(long)
+    wide = groups.headline_with_ci(long)
     assert wide.loc[wide.weather == "WetNoon", "b hi"].item() == results["b"]["groups"]["rows"]["WetNoon"]["headline_ci95"]["3d"][1]
-    assert tables.group_table(results, "precipitation_class").empty
+    assert groups.group_table(results, "precipitation_class").empty
 
 
 def test_robustness_against_plain_python():
@@ -84,7 +84,7 @@ def test_robustness_against_plain_python():
             results["c"]["groups_by"]["weather"]["rows"][w]["headline"]["3d"]["0.7"] = 0.0
         aps = {n: {w: r["groups_by"]["weather"]["rows"][w]["headline"]["3d"]["0.7"] for w in WEATHERS}
                for n, r in results.items()}
-        rob = rain.robustness_table(tables.group_table(results, "weather"), meta).set_index("model")
+        rob = rain.robustness_table(groups.group_table(results, "weather"), meta).set_index("model")
         for name in ("a", "b"):
             clean = (aps[name]["ClearNoon"] + aps[name]["ClearSunset"]) / 2
             assert rob.loc[name, "clean_ap3d"] == pytest.approx(clean)
@@ -199,8 +199,8 @@ def test_lidar_twins_share_rain_rate_and_road_water():
 
 def test_corrupt_presets_follow_meta():
     meta = pd.DataFrame({"weather": ["ClearNoon", "WetNoon", "CloudyNight"], "precipitation_class": ["dry", "dry", "rain"]})
-    assert tables.corrupt_presets(["ClearNoon", "WetNoon", "CloudyNight"], meta) == ["CloudyNight"]
-    assert tables.corrupt_presets(["ClearNoon", "WetNoon", "MidRainyNoon"], None) == ["WetNoon", "MidRainyNoon"]
+    assert groups.corrupt_presets(["ClearNoon", "WetNoon", "CloudyNight"], meta) == ["CloudyNight"]
+    assert groups.corrupt_presets(["ClearNoon", "WetNoon", "MidRainyNoon"], None) == ["WetNoon", "MidRainyNoon"]
 
 
 def _summary(sotif=True, openvino=False):
@@ -333,7 +333,7 @@ def test_the_papers_rows_stand_beside_ours():
 def test_the_cap_is_what_a_perfect_detector_scores_over_n_cars():
     from harness.cells import binds, cap
     from harness.eval_kitti import Filter, build_eval_set, kitti_ap
-    from harness.kitti import Labels
+    from harness.core.kitti import Labels
     for n in (1, 2, 5, 17, 40, 41, 45):
         xs = np.arange(n) * 6.0  # cars 6 m apart, each found exactly
         gt = Labels(name=np.array(["Car"] * n, dtype=object), truncated=np.zeros(n), occluded=np.zeros(n, int),

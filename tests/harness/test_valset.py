@@ -2,7 +2,7 @@
 import json
 
 from harness import valset
-from harness.kitti import read_frames_meta, read_image_set
+from harness.core.kitti import read_frames_meta, read_image_set
 from harness.run import PROFILES, RunConfig
 from harness.stages import Stages
 

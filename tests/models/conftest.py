@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.types import Sample
+from harness.core.types import Sample
 
 CARS = np.array([[10.0, 2.0, -0.95, 4.5, 1.8, 1.6, 0.1], [18.0, -4.0, -0.95, 4.2, 1.7, 1.5, -0.2]],
                 np.float32)  # two cars, LiDAR-frame box rows

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import torch
 
-from harness.boxes import iou_bev
+from harness.core.boxes import iou_bev
 from models.anchor_head import AnchorHead, HeadConfig, assign_targets, make_anchors
 
 RANGE = (0.0, -8.0, -3.0, 16.0, 8.0, 1.0)

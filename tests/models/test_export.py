@@ -269,3 +269,25 @@ def test_models_of_one_class_and_config_whose_parts_differ_never_share_a_graph_e
 
     a, b = cache_key(Outer("openpcdet"), 18), cache_key(Outer("mmdet3d"), 18)
     assert a and b and a != b and cache_key(Outer("openpcdet"), 18) == a
+
+
+def test_graph_code_keys_on_code_not_on_comments_docstrings_or_where_a_harness_name_lives(tmp_path):
+    source = '''"""A module."""
+from harness.types import Sample  # the floor's
+from models.base import Detector
+
+
+def f(x):
+    """Add one."""
+    return x + 1
+'''
+    (tmp_path / "a.py").write_text(source)
+    key = graph_cache.graph_code(tmp_path)
+    same = (source.replace("harness.types", "harness.core.types").replace("Add one.", "One more.")
+            .replace("  # the floor's", "").replace("return x + 1", "return (x\n            + 1)  # layout"))
+    (tmp_path / "a.py").write_text(same)
+    assert graph_cache.graph_code(tmp_path) == key
+    for changed in (source.replace("x + 1", "x + 2"), source.replace("models.base", "models.other"),
+                    source.replace("import Sample", "import Labels")):
+        (tmp_path / "a.py").write_text(changed)
+        assert graph_cache.graph_code(tmp_path) != key, changed

@@ -3,7 +3,7 @@ import dataclasses
 import numpy as np
 import torch
 
-from harness.boxes import iou_bev
+from harness.core.boxes import iou_bev
 from models.multiclass_head import (MMDET3D_DIR_OFFSET, PublishedHeadConfig, axis_positions, mmdet3d_select,
                                     openpcdet_select, published_anchors)
 from models.pointpillars import CONFIGS as PP

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.types import Sample
+from harness.core.types import Sample
 from models.base import reset_norm_statistics
 from models.export import export_onnx, integer_extremes, run_onnx
 from models.mvx_net import CONFIGS, MVXNet, build

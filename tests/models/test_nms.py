@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.boxes import iou_bev
+from harness.core.boxes import iou_bev
 from models.nms import (INT32_MAX, MAX_K, SCORE_LEVELS, index_bits, nms_in_order, ranked_topk, select_ranked,
                         suppression_candidates)
 

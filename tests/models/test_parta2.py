@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.boxes import points_in_boxes
+from harness.core.boxes import points_in_boxes
 from models.export import export_onnx, integer_extremes, run_onnx
 from models.parta2 import CONFIGS, PartA2, build, part_targets, roi_dense_grid, roi_sparse_grid, voxel_centres
 from models.sparse import SparseTensor, SubMConv3d

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.types import Sample
+from harness.core.types import Sample
 from models.export import export_onnx, integer_extremes, run_onnx
 from models.point_rcnn import (
     CONFIGS,

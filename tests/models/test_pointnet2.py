@@ -6,9 +6,8 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from models.pointnet2 import (FeaturePropagation, PointBatchNorm, SetAbstraction, _fps_graph,
-                              ball_queries, ball_query, farthest_point_sample, group_points,
-                              three_nn_interpolate)
+from models.pointnet2 import (FeaturePropagation, PointBatchNorm, SetAbstraction, ball_queries, ball_query,
+                              farthest_point_sample, fps_loop, group_points, three_nn_interpolate)
 
 
 def fps_reference(xyz: np.ndarray, num: int) -> np.ndarray:
@@ -48,10 +47,10 @@ def test_fps_matches_reference(n, num):
 
 def test_fps_graph_and_eager_paths_agree():
     xyz = torch.from_numpy(np.random.default_rng(1).normal(0, 5, (200, 3)).astype(np.float32))
-    np.testing.assert_array_equal(_fps_graph(xyz[None], 30)[0].numpy(),
+    np.testing.assert_array_equal(fps_loop(xyz[None], 30)[0].numpy(),
                                   farthest_point_sample(xyz, 30).numpy())
     batch = xyz.reshape(4, 50, 3)
-    np.testing.assert_array_equal(_fps_graph(batch, 12).numpy(), farthest_point_sample(batch, 12).numpy())
+    np.testing.assert_array_equal(fps_loop(batch, 12).numpy(), farthest_point_sample(batch, 12).numpy())
     for k in range(4):
         np.testing.assert_array_equal(farthest_point_sample(batch, 12)[k].numpy(), fps_reference(batch[k].double().numpy(), 12))
 

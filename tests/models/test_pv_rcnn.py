@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.boxes import points_in_boxes
+from harness.core.boxes import points_in_boxes
 from models.export import export_onnx, integer_extremes, run_onnx
 from models.pv_rcnn import CONFIGS, PVRCNN, build, keypoint_targets, level_centres
 from models.sparse import SparseTensor

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from harness.boxes import corners_3d, iou_3d, points_in_boxes, wrap_angle
+from harness.core.boxes import corners_3d, iou_3d, points_in_boxes, wrap_angle
 from models.roi_head import (SCORE_RULES, OutputConfig, RefineHead, RoITargetConfig, box_corners, corner_loss,
                              decode_canonical, encode_canonical, final_scores, finalize, iou_score_target,
                              refine_loss, roi_support, sample_rois, score_loss)

@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from harness import kitti
+from harness.core import kitti
 from simulator import generate
 from simulator.dataset import GenerateConfig, check_output, plan_jobs
 from simulator.lidar import LidarSpec
@@ -213,7 +213,7 @@ def test_carla_mode_scans_do_not_depend_on_weather(tmp_path):
 
 
 def test_a_resumed_simulation_removes_the_temp_files_a_kill_left(tmp_path):
-    from harness.kitti import folder_lock
+    from harness.core.files import folder_lock
     from simulator.dataset import generate
     out = generate(tmp_path / "d", preset="train", frames=2, seed=3, progress=False)
     scan = out / "training" / "velodyne" / "000001.bin"

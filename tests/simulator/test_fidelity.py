@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from harness import kitti
+from harness.core import kitti
 from simulator import effects, generate
 
 WEATHERS = ("ClearNoon", "ClearNight", "SoftRainNoon", "MidRainyNoon", "HardRainNoon")

@@ -1,12 +1,12 @@
 import numpy as np
 
-from harness.kitti import kitti_calib, project_boxes_2d
+from harness.core.kitti import kitti_calib, project_boxes_2d
 from simulator.labels import (clip_boxes, frame_labels, lidar_boxes, occlusion_level, projected_boxes, truncation,
                                visible_share)
 from simulator.lidar import LidarSpec, scan
+from simulator.lidar import Pose
 from simulator.raycast import STATIC
 from simulator.road import RoadConfig, lane_center, road_to_world
-from simulator.lidar import Pose
 from simulator.vehicles import Vehicle
 from simulator.weather import WEATHER_PRESETS
 

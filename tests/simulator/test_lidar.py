@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from harness.boxes import points_in_boxes
+from harness.core.boxes import points_in_boxes
 from simulator.labels import lidar_boxes
 from simulator.lidar import LidarSpec, Pose, carla_spec, detection_range, ray_directions, rotate_yaw, scan
 from simulator.road import RoadConfig, lane_center, road_to_world

@@ -1,13 +1,14 @@
 import numpy as np
 import pytest
 
-from harness.boxes import iou_bev
-from harness.kitti import kitti_calib
+from harness.core.boxes import iou_bev
+from harness.core.braking import EGO_DIMS
+from harness.core.kitti import kitti_calib
 from simulator.camera import camera_rays
 from simulator.labels import lidar_boxes
 from simulator.lidar import Pose, rotate_yaw
 from simulator.road import RoadConfig, centreline, lane_center, road_to_world
-from simulator.scenario import EGO_DIMS, SotifConfig, sotif_run, training_scene
+from simulator.scenario import SotifConfig, sotif_run, training_scene
 from simulator.vehicles import BODY_NAMES, BODY_TYPES, vehicle_mesh
 
 ROAD = RoadConfig()

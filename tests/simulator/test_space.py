@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 
 import harness.sotif
+from harness.core import braking
+from harness.core.braking import EGO_DIMS, stopping_distance
 from simulator import scenario
 from simulator.dataset import GenerateConfig, generate, plan_jobs
 from simulator.lidar import LidarSpec, Pose, scan
 from simulator.materials import REFLECTIVITY, lidar_tables, paint_id
 from simulator.road import RoadConfig, lane_center, road_to_world
-from simulator.scenario import (EGO_DIMS, SotifConfig, instance_steps, sotif_run, stopping_distance,
-                                window_length_s)
+from simulator.scenario import SotifConfig, instance_steps, sotif_run, window_length_s
 from simulator.space import (CONTINUOUS, FAST_BODIES, SLOW_BODIES, SLOW_PAINTS, STUDY, SWEEP_AXES, ScenarioSpace,
                              SweepPoint, check_space, design, instances, sweep_points, sweep_weather, val_instances)
 from simulator.vehicles import Vehicle
@@ -21,9 +22,10 @@ from simulator.weather import WEATHER_PRESETS, rain_rate_mmh, road_water_cover
 ROAD = RoadConfig()
 
 
-def test_braking_constants_live_in_the_scenario():
+def test_the_scenario_and_the_verdict_brake_by_the_floors_rule():
     for name in ("T_REACT_S", "DECEL_MPS2", "MARGIN_M", "stopping_distance"):
-        assert getattr(harness.sotif, name) is getattr(scenario, name)
+        assert getattr(harness.sotif, name) is getattr(braking, name)
+    assert scenario.stopping_distance is braking.stopping_distance
     assert stopping_distance(10.0) == pytest.approx(10.0 * 1.0 + 100.0 / 8.0 + 2.0)  # 24.5 m
     assert window_length_s(50.0, 10.0) == pytest.approx((50.0 - 24.5) / 10.0)
     assert window_length_s(20.0, 10.0) == 0.0 and window_length_s(20.0, 0.0) == math.inf

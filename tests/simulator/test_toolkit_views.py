@@ -12,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-from harness import kitti
+from harness.core import kitti
 from simulator import generate
 from simulator.toolkit_views import VIEW_ROOT
 

@@ -3,9 +3,9 @@ import pandas as pd
 import pytest
 from hypothesis import HealthCheck, given, settings, strategies as st
 
-from harness import kitti
-from harness.boxes import corners_3d
-from harness.kitti import KittiError, Labels
+from harness.core import kitti
+from harness.core.boxes import corners_3d
+from harness.core.kitti import KittiError, Labels
 
 
 def test_points_round_trip_and_errors(tmp_path):
@@ -201,40 +201,3 @@ def test_image_sets_meta_and_images(tmp_path):
     with pytest.raises(KittiError, match=r"bad\.png"):
         kitti.read_image(tmp_path / "bad.png")
     assert kitti.frame_path(tmp_path, "velodyne", "000007").name == "000007.bin"
-
-
-def test_atomic_write_keeps_old_file_on_failure(tmp_path, monkeypatch):
-    p = kitti.atomic_write_text(tmp_path / "x.txt", "old")
-    import os
-    monkeypatch.setattr(os, "replace", lambda *a: (_ for _ in ()).throw(OSError("disk full")))
-    with pytest.raises(OSError):
-        kitti.atomic_write_text(p, "new")
-    assert p.read_text() == "old" and len(list(tmp_path.iterdir())) == 1
-
-
-def test_atomic_write_errors_name_the_target_not_the_temp_file(tmp_path, monkeypatch):
-    import errno
-    import os
-    import tempfile
-    target = tmp_path / "results.json"
-
-    def refuse(dir, prefix, suffix):  # as mkstemp in a read-only folder (the tests may run as root)
-        raise PermissionError(errno.EACCES, "Permission denied", os.path.join(dir, prefix + "abcd1234" + suffix))
-    with monkeypatch.context() as m:
-        m.setattr(tempfile, "mkstemp", refuse)
-        with pytest.raises(PermissionError) as e:
-            kitti.atomic_write_text(target, "x")
-    assert e.value.filename == str(target) and e.value.errno == errno.EACCES
-    monkeypatch.setattr(os, "replace", lambda *a: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left")))
-    with pytest.raises(OSError) as e:
-        kitti.atomic_write_text(target, "x")
-    assert e.value.filename == str(target) and e.value.errno == errno.ENOSPC
-    assert list(tmp_path.iterdir()) == []
-
-
-def test_atomic_write_gives_the_usual_file_mode(tmp_path):
-    import os
-    umask = os.umask(0)
-    os.umask(umask)
-    p = kitti.atomic_write_text(tmp_path / "mode.txt", "x")
-    assert p.stat().st_mode & 0o777 == 0o666 & ~umask

@@ -3,8 +3,7 @@ import pytest
 import shapely
 from hypothesis import given, settings, strategies as st
 
-from harness.boxes import (corners_3d, corners_bev, iou_3d, iou_bev, nms_bev, points_in_boxes,
-                           wrap_angle)
+from harness.core.boxes import corners_3d, corners_bev, iou_3d, iou_bev, nms_bev, points_in_boxes, wrap_angle
 
 
 def random_boxes(rng, n, spread=4.0):

@@ -2,17 +2,14 @@
 
 This is the only place where KITTI's camera-frame box convention (bottom-centre location,
 ``h w l``, ``rotation_y = -yaw - pi/2``) exists; everything else uses the LiDAR box row of
-``harness.types``. Every reader raises ``KittiError`` naming the file (and line) on bad input;
-every writer is atomic (temp file + rename), so an interrupted write never leaves half a file.
+``harness.core.types``. Every reader raises ``KittiError`` naming the file (and line) on bad input;
+every writer is atomic (``harness.core.files``: temp file + rename), so an interrupted write never
+leaves half a file.
 """
 from __future__ import annotations
 
-import fcntl
 import io
 import math
-import os
-import re
-import tempfile
 from contextlib import contextmanager
 from dataclasses import dataclass, field, fields
 from pathlib import Path
@@ -21,7 +18,8 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
-from harness.boxes import corners_3d, wrap_angle
+from harness.core.boxes import corners_3d, wrap_angle
+from harness.core.files import atomic_write_bytes, atomic_write_text
 
 KITTI_CLASSES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram",
                  "Misc", "DontCare")
@@ -41,73 +39,11 @@ class KittiError(ValueError):
         return type(self), (self.path, self.problem, self.line)
 
 
-# ----------------------------------------------------------------------------- atomic writes
-_UMASK = os.umask(0)
-os.umask(_UMASK)
-
-
-def atomic_write_bytes(path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temp file in the same folder and an atomic rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = None
-    try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600 files; give the usual mode
-        os.replace(tmp, path)
-    except BaseException as e:
-        if tmp is not None:
-            Path(tmp).unlink(missing_ok=True)
-        if isinstance(e, OSError) and e.errno is not None and (
-                e.filename is None or Path(e.filename).name.startswith(f".{path.name}.")):
-            # a read-only folder or a full disk: name the file the user asked for, not the temp file
-            raise type(e)(e.errno, e.strerror, str(path)) from None
-        raise
-    return path
-
-
-# what atomic_write_bytes's mkstemp names look like: ".<target name>.<8 random chars>.tmp"
-_TEMP_NAME = re.compile(r"^\..+\.[a-z0-9_]{8}\.tmp$")
-
-
-def remove_temp_files(root) -> list[Path]:
-    """Delete the temp files under ``root`` that atomic writes ended by a kill left behind (never a
-    target: those are only ever replaced whole). Only for a folder no other process is writing to."""
-    removed = []
-    for path in sorted(Path(root).rglob(".*.tmp")):
-        if _TEMP_NAME.match(path.name) and path.is_file():
-            path.unlink(missing_ok=True)
-            removed.append(path)
-    return removed
-
-
-def atomic_write_text(path, text: str) -> Path:
-    return atomic_write_bytes(path, text.encode("utf-8"))
-
-
 def frame_path(root, kind: str, frame_id: str, split_dir: str = "training") -> Path:
     """``<root>/training/<kind>/<frame_id>.<ext>``."""
     if kind not in KINDS:
         raise ValueError(f"unknown KITTI folder {kind!r}; expected one of {sorted(KINDS)}")
     return Path(root) / split_dir / kind / f"{frame_id}{KINDS[kind]}"
-
-
-@contextmanager
-def folder_lock(folder: Path, command: str):
-    """Hold ``<folder>/.lock`` while ``command`` writes there: a second command into the same
-    folder stops with an error instead of racing the first for its files."""
-    with open(Path(folder) / ".lock", "a") as f:
-        try:
-            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            raise ValueError(f"{folder}: another sotif-bench {command} is writing to this folder; "
-                             "wait for it to end or pass another --out") from None
-        try:
-            yield
-        finally:
-            fcntl.flock(f, fcntl.LOCK_UN)
 
 
 def _read_text(path) -> str:
