@@ -29,10 +29,10 @@ import numpy as np
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
-from harness.augment import AugmentConfig
+from harness.augment import AugmentConfig, augment
 from harness.dataset import KittiDataset
 from harness.gt_database import load_or_build
-from harness.train import load_batch, train_config, uses_gt_sampling
+from harness.train import train_config, uses_gt_sampling
 from models import zoo
 
 GEMM = "GEMM/conv"
@@ -166,7 +166,8 @@ class Stepper:
         frames = self.order[(k * bs) % len(self.ds):][:bs]
         with record_function(_PREFIX + "other"):  # Python time outside every op and wrapped function
             with record_function(_PREFIX + "data + augment"):
-                samples = load_batch(self.ds, frames, np.random.default_rng([0, 0, k]), self.aug, self.database)
+                rng = np.random.default_rng([0, 0, k])  # as harness.train.load_batch (absent from older code)
+                samples = [augment(self.ds[int(i)], rng, self.aug, self.database) for i in frames]
             loss = self.net.loss(samples)["loss"]
             loss.backward()
             with record_function(_PREFIX + "optimizer"):
@@ -205,8 +206,15 @@ def main(argv=None) -> int:
     p.add_argument("--models", default=",".join(zoo.MODEL_NAMES))
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--steps", type=int, default=4)
+    p.add_argument("--time", action="store_true", help="only the unprofiled seconds per step, one line per model")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
+    if args.time:
+        for name in args.models.split(","):
+            stepper = Stepper(name, args.data)
+            seconds_per_step(stepper, 0, args.warmup)
+            print(name, seconds_per_step(stepper, args.warmup, args.steps), flush=True)
+        return 0
     instrument()
     short = [c.split(" (")[0] for c in CATEGORIES]
     print("| model | s/step | profiled s/step | " + " | ".join(short) + " | GEMM share |")
