@@ -206,14 +206,16 @@ def main(argv=None) -> int:
     p.add_argument("--models", default=",".join(zoo.MODEL_NAMES))
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--steps", type=int, default=4)
-    p.add_argument("--time", action="store_true", help="only the unprofiled seconds per step, one line per model")
+    p.add_argument("--serve", action="store_true", help="for paired_train_step: after the warm-up of the one "
+                   "model, read step numbers from stdin and print each step's seconds")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    if args.time:
-        for name in args.models.split(","):
-            stepper = Stepper(name, args.data)
-            seconds_per_step(stepper, 0, args.warmup)
-            print(name, seconds_per_step(stepper, args.warmup, args.steps), flush=True)
+    if args.serve:
+        stepper = Stepper(args.models, args.data)
+        seconds_per_step(stepper, 0, args.warmup)
+        print("ready", flush=True)
+        for line in sys.stdin:
+            print(seconds_per_step(stepper, int(line), 1), flush=True)
         return 0
     instrument()
     short = [c.split(" (")[0] for c in CATEGORIES]
