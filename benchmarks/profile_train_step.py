@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib
+import inspect
 import re
 import sys
 import time
@@ -153,7 +154,12 @@ class Stepper:
         self.net = zoo.build(name, "compact")
         self.net.train()
         self.net.sampling_rng = np.random.default_rng([0, 0, 1])
-        self.ds = KittiDataset(data, "train", with_image=self.net.uses_camera)
+        if "keep" in inspect.signature(KittiDataset).parameters:  # as harness.train reads them (older code: from disk)
+            self.ds = KittiDataset(data, "train", with_image=self.net.uses_camera, keep=True)
+            for i in range(len(self.ds)):  # the epochs after the first: every frame read before
+                self.ds[i]
+        else:
+            self.ds = KittiDataset(data, "train", with_image=self.net.uses_camera)
         self.aug = AugmentConfig()
         self.database = (load_or_build(data, data / "gt_database", self.aug.gt_sampling)
                          if uses_gt_sampling(self.net, self.aug) else None)

@@ -339,7 +339,7 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
         own = net.state_dict()
         warm = {"warm_start": {"init_weights": zoo.weights_digest({n: own[n] for n in loaded}),
                                "warm_tensors": len(loaded)}}
-    ds = KittiDataset(data, "train", with_image=net.uses_camera)
+    ds = KittiDataset(data, "train", with_image=net.uses_camera, keep=True)  # read once, augmented every epoch
     if len(ds) == 0:
         raise ValueError(f"{data / 'ImageSets' / 'train.txt'}: no training frames")
     use_gts = uses_gt_sampling(net, aug)
