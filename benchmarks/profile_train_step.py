@@ -5,7 +5,8 @@ loading + augmentation, optimizer and the rest; and the seconds per step without
 
     python -m benchmarks.profile_train_step --data DIR [--models a,b] [--warmup 2] [--steps 4]
 
-A step is what one training process spends per batch on one core: reading and augmenting the
+A step is what one training process spends per batch on one core (glibc malloc keeping freed
+memory, as in ``harness.malloc``): reading and augmenting the
 batch's frames (``harness.train.load_batch``, ground-truth sampling for LiDAR-only models), the
 forward and loss, backward, gradient clipping and AdamW. Batches are those of epoch 0 of seed 0.
 
@@ -33,6 +34,7 @@ from torch.profiler import ProfilerActivity, profile, record_function
 from harness.augment import AugmentConfig, augment
 from harness.dataset import KittiDataset
 from harness.gt_database import load_or_build
+from harness.malloc import keep_freed_memory
 from harness.train import train_config, uses_gt_sampling
 from models import zoo
 
@@ -216,6 +218,7 @@ def main(argv=None) -> int:
                    "model, read step numbers from stdin and print each step's seconds")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
+    keep_freed_memory()  # as the training processes of `train` and `run` do
     if args.serve:
         stepper = Stepper(args.models, args.data)
         seconds_per_step(stepper, 0, args.warmup)
