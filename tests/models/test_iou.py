@@ -54,3 +54,26 @@ def test_iou_degenerate_cases():
     inner[:, 3:5] *= 0.5  # nested rectangle: IoU = 1/4
     np.testing.assert_allclose(iou_bev_pairs(a, inner).numpy(), 0.25, atol=1e-5)
     assert iou_bev(a[:0], a).shape == (0, 20)
+
+
+def test_iou_bev_sparse_equals_every_pair_bit_for_bit():
+    """The pruned, chunked anchor x box IoU against iou_bev_pairs of every pair: equal bits, with
+    anchors on a grid 70 m out, boxes of any heading among them, touching and nearly touching."""
+    from models import iou as iou_mod
+    rng = np.random.default_rng(5)
+    xs, ys = np.meshgrid(np.arange(60.0, 80.0, 0.4), np.arange(-8.0, 8.0, 0.4))
+    n = xs.size
+    anchors = np.c_[xs.ravel(), ys.ravel(), np.full(n, -1.0), np.full(n, 3.9), np.full(n, 1.6), np.full(n, 1.56),
+                    rng.choice([0.0, np.pi / 2], n)]
+    k = 12
+    boxes = np.c_[rng.uniform(60, 80, k), rng.uniform(-8, 8, k), np.full(k, -1.0), rng.uniform(0.5, 5, k),
+                  rng.uniform(0.3, 2, k), np.full(k, 1.5), rng.uniform(-np.pi, np.pi, k)]
+    boxes[0] = anchors[100] + [3.9 + 0.1 + 1e-4, 0, 0, 0, 0, 0, 0]  # just beyond the gap along x
+    boxes[1] = anchors[100] + [3.9, 0, 0, 0, 0, 0, 0]  # touching
+    boxes[1, 6] = boxes[0, 6] = anchors[100, 6] = 0.0
+    ta, tb = torch.tensor(anchors, dtype=torch.float32), torch.tensor(boxes, dtype=torch.float32)
+    ia, ib = torch.meshgrid(torch.arange(n), torch.arange(k), indexing="ij")
+    every = iou_bev_pairs(ta[ia.reshape(-1)], tb[ib.reshape(-1)]).reshape(n, k)
+    assert torch.equal(iou_bev_sparse(ta, tb), every)
+    apart = iou_mod.bounds_apart(ta[ia.reshape(-1)], tb[ib.reshape(-1)], gap=0.0).reshape(n, k)
+    assert (every[apart] == 0).all() and (every > 0).sum() > 50
