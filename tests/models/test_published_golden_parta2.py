@@ -1,0 +1,58 @@
+"""The imported Part-A2 against golden data of OpenPCDet's own modules (``benchmarks/golden_parta2.py``:
+PartA2.yaml's network on CPU, random weights by the seeded rule in its checkpoint layout, one frame on
+one thread, CPU stand-ins for its RoI-aware pooling and rotated NMS). The checkpoint is rebuilt here
+from the rule, imported through ``sotif-bench import``'s code and run: the bird's-eye map, the RPN
+class logits, the voxels' segmentation and part scores, the 100 proposals, the RCNN outputs of the
+reference's proposals and the final Car boxes must match."""
+import math
+
+import numpy as np
+import torch
+
+from models.roi_head import decode_canonical, propose
+from tests.models.test_published_golden import assert_same_boxes, car_boxes, imported
+
+TOL = dict(rtol=1e-4, atol=1e-4)
+
+
+def by_centre(xyz: torch.Tensor, want_xyz: np.ndarray) -> np.ndarray:
+    """(S,) rows of our voxel centres xyz (V, 3) at the reference's voxel centres (S, 3)."""
+    dist = torch.cdist(torch.from_numpy(want_xyz).double(), xyz.double())  # (S, V) m
+    near, rows = dist.min(dim=1)
+    assert float(near.max()) < 1e-4
+    return rows.numpy()
+
+
+def test_imported_parta2_is_openpcdet(tmp_path):
+    net, g = imported("openpcdet", "parta2", tmp_path)
+    points = torch.from_numpy(g["points"])
+    with torch.no_grad():
+        xyz, feats, seg, part, bev = net.voxel_stage(points)
+        feats2d = net.backbone2d(bev)
+        cls = net.rpn(feats2d)[0]  # (A, 3) class logits
+        rois, roi_scores, roi_labels = propose(net.rpn, feats2d, net.cfg.proposals_test)
+        want_rois = torch.from_numpy(g["rois"])
+        logit, deltas = net.rcnn(want_rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
+        rcnn_boxes = decode_canonical(deltas, want_rois, net.cfg.output.max_log_size)
+        boxes, scores = net.second_stage(xyz, feats, seg, part, feats2d)[:2]
+    assert xyz.shape[0] == int(g["num_voxels"])
+    np.testing.assert_allclose(bev[0].numpy()[tuple(g["bev_index"].T)], g["bev_value"], **TOL)
+    np.testing.assert_allclose(cls.numpy()[tuple(g["cls_index"].T)], g["cls_value"], **TOL)
+    rows = by_centre(xyz, g["seg_xyz"])
+    np.testing.assert_allclose(torch.sigmoid(seg).numpy()[rows], g["seg_value"], **TOL)
+    rows = by_centre(xyz, g["part_xyz"])
+    np.testing.assert_allclose(torch.sigmoid(part).numpy()[rows, g["part_index"][:, 1]], g["part_value"], **TOL)
+    # proposals: OpenPCDet keeps the RPN's logit as the RoI score
+    want_scores = torch.sigmoid(torch.from_numpy(g["roi_scores"])).numpy()
+    assert_same_boxes(rois.numpy(), roi_scores.numpy(), g["rois"], want_scores)
+    order, want_order = np.argsort(-roi_scores.numpy(), kind="stable"), np.argsort(-want_scores, kind="stable")
+    np.testing.assert_array_equal(roi_labels.numpy()[order], g["roi_labels"][want_order])
+    # the RCNN on the reference's proposals
+    np.testing.assert_allclose(logit.numpy(), g["rcnn_cls"], **TOL)
+    got, want = rcnn_boxes.numpy(), g["rcnn_boxes"]  # (K, 7) each, the reference's RoI order
+    turn = np.remainder(got[:, 6] - want[:, 6] + math.pi, 2 * math.pi) - math.pi
+    np.testing.assert_allclose(got[:, :6], want[:, :6], rtol=0, atol=1e-3)
+    assert np.abs(turn).max() <= 1e-3
+    want_boxes, want_final = car_boxes(g)
+    assert len(want_boxes) > 0
+    assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_final)
