@@ -20,8 +20,8 @@ The checkpoint tensors are filled by the seeded rule of ``benchmarks.golden_weig
 more) and nothing is written unless both runs agree bit for bit. ``tests/golden/openpcdet_parta2.npz``
 holds the rule's seed, the tensor names and shapes (no weights), the frame, sampled intermediates
 (the bird's-eye map entering the 2D backbone, the RPN class logits, the voxels' segmentation and
-part scores with the voxels' centres), the 100 proposals (boxes, scores, labels), the RCNN logits and boxes of every proposal
-and the final boxes of every class with labels and scores.
+part scores with the voxels' centres), the 100 proposals (boxes, scores, labels), the RCNN logits and
+boxes of every proposal and the final boxes of every class with labels and scores.
 """
 from __future__ import annotations
 
@@ -153,7 +153,8 @@ def order_free(scores: np.ndarray, boxes: np.ndarray, nms) -> str | None:
     NMS_PRE cut, no two boxes of one score overlapping by more than NMS_THRESH, and the last box kept at
     the NMS_POST cap sharing its score with no other candidate."""
     order = np.argsort(-scores, kind="stable")
-    if len(order) > nms.NMS_PRE_MAXSIZE and scores[order[nms.NMS_PRE_MAXSIZE - 1]] == scores[order[nms.NMS_PRE_MAXSIZE]]:
+    pre = nms.NMS_PRE_MAXSIZE
+    if len(order) > pre and scores[order[pre - 1]] == scores[order[pre]]:
         return "a tie at the NMS_PRE_MAXSIZE cut"
     top = order[:nms.NMS_PRE_MAXSIZE]
     values, counts = np.unique(scores[top], return_counts=True)
@@ -183,7 +184,8 @@ def run(net, proc, post, points: np.ndarray) -> dict:
     with torch.no_grad():
         for name in MODULES:
             if name == "roi_head":  # the RPN's outputs, before the RoI head replaces them
-                seen["cls"], seen["rpn_boxes"] = batch["batch_cls_preds"][0].clone(), batch["batch_box_preds"][0].clone()
+                seen["cls"] = batch["batch_cls_preds"][0].clone()
+                seen["rpn_boxes"] = batch["batch_box_preds"][0].clone()
             batch = getattr(net, name)(batch)
         rcnn_cls, boxes = batch["batch_cls_preds"][0], batch["batch_box_preds"][0]  # (K, 1) logits, (K, 7)
         scores = torch.sigmoid(rcnn_cls).max(dim=-1).values  # post_processing: has_class_labels -> roi_labels
@@ -230,7 +232,8 @@ def golden(root: Path, out: Path, seed: int = SEED) -> Path:
         sampled[f"{key}_xyz"] = res["xyz"][sampled[f"{key}_index"][:, 0]]
     path = out / "openpcdet_parta2.npz"
     np.savez_compressed(path, rule=RULE, seed=seed, cls_bias=CLS_BIAS, head_scale=1.0, names=np.array(names),
-                        shape_dims=np.array([len(s) for s in shapes]), shape_values=np.array([d for s in shapes for d in s]),
+                        shape_dims=np.array([len(s) for s in shapes]),
+                        shape_values=np.array([d for s in shapes for d in s]),
                         points=points, num_voxels=res["num_voxels"], **sampled,
                         **{k: res[k] for k in ("rois", "roi_scores", "roi_labels", "rcnn_cls", "rcnn_boxes", "boxes",
                                                "scores", "labels")}, classes=np.array(classes))

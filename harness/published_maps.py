@@ -55,7 +55,8 @@ def _retarget(rules: list, prefixes: dict[str, str]) -> list:
 # OpenPCDet UNetV2's decoder: conv_up_t{i} / conv_up_m{i} at encoder level i - 1 (1 = the stem), inv_conv{i}
 # from level i - 1 to i - 2, conv5 at level 0
 _OPENPCDET_UNET = [
-    (r"backbone_3d\.conv_up_t(?P<i>[1-4])\.conv(?P<j>[12])\.weight", "unet.lateral.{i}.conv{j}.weight", {"i": -1}, SPARSE),
+    (r"backbone_3d\.conv_up_t(?P<i>[1-4])\.conv(?P<j>[12])\.weight", "unet.lateral.{i}.conv{j}.weight", {"i": -1},
+     SPARSE),
     (r"backbone_3d\.conv_up_t(?P<i>[1-4])\.bn(?P<j>[12])\." + BN, "unet.lateral.{i}.bn{j}.{p}", {"i": -1}, COPY),
     (r"backbone_3d\.conv_up_m(?P<i>[1-4])\.0\.weight", "unet.merge.{i}.0.weight", {"i": -1}, SPARSE),
     (r"backbone_3d\.conv_up_m(?P<i>[1-4])\.1\." + BN, "unet.merge.{i}.1.norm.{p}", {"i": -1}, COPY),

@@ -9,6 +9,10 @@
       --submanifold 3D convs on the occupied pooled cells, 2x max-pool--> flatten
       --refine head--> IoU-guided score, residuals
       --decode--> rcnn_boxes (K, 7) --score threshold + BEV NMS--> boxes, scores
+
+The ``kitti`` profile is OpenPCDet's PartA2.yaml network (``sotif-bench import``; docs/models.md): its
+UNetV2 decoder (``PublishedUNet``), one-layer point heads, the 3-class RPN whose proposals keep their best
+class, the 12^3 RoI grid flattened, and the Car boxes of one class-agnostic NMS over every RoI.
 """
 from __future__ import annotations
 
@@ -238,7 +242,8 @@ class PartAggregationHead(nn.Module):
     on the foreground only); feature branch: max-pooled decoder features. Each branch is two
     SubM convs over the RoI cells that hold a voxel; the branches are concatenated, merged by one
     more SubM conv, max-pooled 2x2x2 (the empty cells stay zero, as spconv's SparseMaxPool3d),
-    flattened and fed to the refinement head.
+    flattened and fed to the refinement head. Without ``roi_down`` (OpenPCDet's PartA2FCHead) the
+    concatenation [feature, part] of every cell is flattened as it is.
     forward(rois (K, 7), xyz (V, 3), feats (V, C), seg (V,), part (V, 3)) -> logit (K,), deltas (K, 7).
     """
 

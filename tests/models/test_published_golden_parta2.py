@@ -4,13 +4,17 @@ one thread, CPU stand-ins for its RoI-aware pooling and rotated NMS). The checkp
 from the rule, imported through ``sotif-bench import``'s code and run: the bird's-eye map, the RPN
 class logits, the voxels' segmentation and part scores, the 100 proposals, the RCNN outputs of the
 reference's proposals and the final Car boxes must match."""
+import collections
 import math
 
 import numpy as np
 import torch
 
+from harness.cli import main
 from models.roi_head import decode_canonical, propose
-from tests.models.test_published_golden import assert_same_boxes, car_boxes, imported
+from tests.harness import published_layouts as layouts
+from tests.harness.test_import_weights import openpcdet_file
+from tests.models.test_published_golden import assert_same_boxes, car_boxes, imported, load
 
 TOL = dict(rtol=1e-4, atol=1e-4)
 
@@ -56,3 +60,22 @@ def test_imported_parta2_is_openpcdet(tmp_path):
     want_boxes, want_final = car_boxes(g)
     assert len(want_boxes) > 0
     assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_final)
+
+
+def test_another_network_exits_2_naming_the_mismatch(tmp_path, capsys):
+    """SECOND's file, and Part-A2's with a per-class point head (CLASS_AGNOSTIC False), are refused."""
+    g = load("openpcdet", "parta2")
+    second = collections.OrderedDict((n, torch.zeros(s)) for n, s in layouts.openpcdet_second(True).items())
+    shapes = dict(zip((str(n) for n in g["names"]), g["shapes"]))
+    per_class = collections.OrderedDict((n, torch.zeros(s)) for n, s in shapes.items())
+    per_class["point_head.cls_layers.0.weight"] = torch.zeros(3, 16)
+    per_class["point_head.cls_layers.0.bias"] = torch.zeros(3)
+    cases = (("second", second, "tensors of ours no reference tensor fills (170): part_head.0.bias"),
+             ("per_class", per_class, "point_head.cls_layers.0.weight (3, 16) for seg_head.0.weight (1, 16)"))
+    for name, state, want in cases:
+        openpcdet_file(tmp_path / f"{name}.pth", state)
+        assert main(["import", "--from", "openpcdet", "--model", "parta2", "--checkpoint",
+                     str(tmp_path / f"{name}.pth"), "--out", str(tmp_path / "o.pt")]) == 2
+        err = capsys.readouterr().err
+        assert "does not hold the network of OpenPCDet tools/cfgs/kitti_models/PartA2.yaml" in err and want in err, err
+        assert not (tmp_path / "o.pt").exists()
