@@ -39,13 +39,13 @@ from benchmarks.golden_published import import_openpcdet, iou, polygon, sample, 
 from benchmarks.golden_weights import RULE, fill
 
 SEED, CLS_BIAS = 500, -2.0
-GROUND = 14000
+GROUND = 8000
 MARGIN = np.float32(1e-5)  # check_pt_in_box3d's MARGIN
 
 
 def frame(seed: int) -> np.ndarray:
     """(N, 4) float32 points: ``benchmarks.golden_published.frame``'s cars and outliers on a ground of
-    GROUND points (2.5 a square metre: fewer proposals hold no voxel)."""
+    GROUND points (1.4 a square metre, beside the 1.1 of golden_published: fewer proposals hold no voxel)."""
     rng = np.random.Generator(np.random.PCG64(seed))
     ground = np.c_[rng.uniform(0, 70.4, GROUND), rng.uniform(-40, 40, GROUND), rng.normal(-1.75, 0.02, GROUND),
                    rng.uniform(0, 1, GROUND)].astype(np.float32)

@@ -79,6 +79,10 @@ class PartA2Config:
     weight_rcnn: float = 1.0
     seed: int = 0  # RoI sampling draws
 
+    def __post_init__(self):
+        if self.decoder not in ("concat", "unetv2"):
+            raise ValueError(f"decoder must be 'concat' or 'unetv2', got {self.decoder!r}")
+
     @property
     def grid(self) -> Grid:
         return Grid(self.pc_range, self.voxel_size)

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from harness.cli import main
-from models.roi_head import decode_canonical, propose
+from models.roi_head import decode_canonical, finalize, propose, roi_support
 from tests.harness import published_layouts as layouts
 from tests.harness.test_import_weights import openpcdet_file
 from tests.models.test_published_golden import assert_same_boxes, car_boxes, imported, load
@@ -38,7 +38,10 @@ def test_imported_parta2_is_openpcdet(tmp_path):
         want_rois = torch.from_numpy(g["rois"])
         logit, deltas = net.rcnn(want_rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
         rcnn_boxes = decode_canonical(deltas, want_rois, net.cfg.output.max_log_size)
-        boxes, scores = net.second_stage(xyz, feats, seg, part, feats2d)[:2]
+        # the rest of PartA2.second_stage, on our proposals
+        ours = net.rcnn(rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
+        boxes, scores, _ = finalize(rois, roi_scores, *ours, net.cfg.output, roi_support(xyz, rois), roi_labels,
+                                    net.reported)
     assert xyz.shape[0] == int(g["num_voxels"])
     np.testing.assert_allclose(bev[0].numpy()[tuple(g["bev_index"].T)], g["bev_value"], **TOL)
     np.testing.assert_allclose(cls.numpy()[tuple(g["cls_index"].T)], g["cls_value"], **TOL)
