@@ -130,16 +130,27 @@ def iou_3d(a: Tensor, b: Tensor) -> Tensor:
     return iou_3d_pairs(pa, pb).reshape(a.shape[0], b.shape[0])
 
 
-def iou_bev_sparse(a: Tensor, b: Tensor) -> Tensor:
-    """(Ka, Kb) rotated BEV IoU computed only for pairs whose circumcircles overlap.
-
-    For eager use with many boxes (anchors x ground truth): equal to :func:`iou_bev`.
-    """
+def _sparse(a: Tensor, b: Tensor, pairs) -> Tensor:
+    """(Ka, Kb) ``pairs(a[i], b[j])`` for the pairs whose circumcircles overlap, 0 for the others."""
     ra = 0.5 * torch.sqrt(a[:, 3] ** 2 + a[:, 4] ** 2)  # (Ka,) circumradius
     rb = 0.5 * torch.sqrt(b[:, 3] ** 2 + b[:, 4] ** 2)
     dist = torch.cdist(a[:, :2], b[:, :2])  # (Ka, Kb)
     ia, ib = torch.nonzero(dist < ra[:, None] + rb[None, :], as_tuple=True)
     out = a.new_zeros(a.shape[0], b.shape[0])
     if ia.numel():
-        out[ia, ib] = iou_bev_pairs(a[ia], b[ib])
+        out[ia, ib] = pairs(a[ia], b[ib])
     return out
+
+
+def iou_bev_sparse(a: Tensor, b: Tensor) -> Tensor:
+    """(Ka, Kb) rotated BEV IoU computed only for pairs whose circumcircles overlap.
+
+    For eager use with many boxes (anchors x ground truth): equal to :func:`iou_bev`.
+    """
+    return _sparse(a, b, iou_bev_pairs)
+
+
+def ioa_bev_sparse(a: Tensor, b: Tensor) -> Tensor:
+    """(Ka, Kb) share of each a box's BEV area inside each b box (intersection over a's area), sparse as
+    :func:`iou_bev_sparse`: how much of an anchor lies in an ignored region, whatever the region's size."""
+    return _sparse(a, b, lambda pa, pb: _ratio(intersection_bev_pairs(pa, pb), pa[:, 3] * pa[:, 4]))
