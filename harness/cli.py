@@ -235,6 +235,9 @@ def cmd_verdict(a) -> int:
     if a.threshold is not None and not 0.0 <= a.threshold <= 1.0:
         raise ValueError(f"--threshold {a.threshold:g}: a score threshold lies in [0, 1]")
     data, predictions = Path(a.data), Path(a.predictions)
+    for option, folder in (("--data", data), ("--predictions", predictions)):
+        if folder.resolve() in out.resolve().parents:
+            raise ValueError(f"--output {out}: inside the {option} folder {folder}; write the verdict elsewhere")
     threshold, source = (a.threshold, "given") if a.threshold is not None else operating_threshold(data, predictions)
     result = verdict(data, predictions, threshold, latency_ms=a.latency_ms, split=a.split,
                      rule=Rule(reaction_s=REACTIONS[a.reaction]), model=a.model)
