@@ -212,7 +212,7 @@ def _space_section(run: tables.Run, t: dict) -> list[Section]:
     """"SOTIF over the scenario space" (``harness.report_space``), when the run has its results."""
     if "sotif_instances" not in t:
         return []
-    matrix = report_space.rate_matrix(t.get("sotif_pass_rates", pd.DataFrame()))
+    matrix = report_space.rate_matrix(t.get("sotif_pass_rates", pd.DataFrame()), t.get("sotif_phantoms"))
     answer = [Section("sotif_answer", "Where each detector stops finding the slow car in time",
                       report_space.answer_intro(t), [("", matrix, 2)], ["sotif_margins"], lead=True)] \
         if not matrix.empty else []

@@ -39,10 +39,12 @@ REACTIONS = {"system": T_REACT_SYSTEM_S, "human": T_REACT_S}  # s, an automated 
 INSTANCE_COLUMNS = ("instance", "body", "paint", "reflectance", "rain_mm_h", "fog_mor_m", "water", "preventable",
                     "reason", "reference_confirm_s", "model", "confirm_s", "delay_s", "a_req_mps2", "margin_m",
                     "passed", "verdict")
-EXTRA_COLUMNS = ("weather", "sweep_axis", "body_class", "latency_ms", "reference_a_req_mps2", "passed_4mps2",
-                 "box_iou05_share", "n_frames")
+EXTRA_COLUMNS = ("weather", "sweep_axis", "precipitation_class", "body_class", "latency_ms", "reference_a_req_mps2",
+                 "passed_4mps2", "box_iou05_share", "n_frames")
 _CONDITIONS = {"paint": "sc_slow_paint", "reflectance": "sc_slow_reflectance", "rain_mm_h": "rain_rate_mmh",
-               "fog_mor_m": "fog_mor_m", "water": "road_water", "sweep_axis": "sweep_axis"}
+               "fog_mor_m": "fog_mor_m", "water": "road_water", "sweep_axis": "sweep_axis",
+               "precipitation_class": "precipitation_class"}
+FRAME_COLUMNS = ("rain_rate_mmh", "fog_mor_m", "sc_slow_reflectance", "precipitation_class")  # kept per frame
 
 
 @dataclass(frozen=True)
@@ -178,10 +180,21 @@ def pass_summary(rows: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(out)
 
 
+def frame_table(ref: reference.Reference, det: pd.DataFrame) -> dict:
+    """The judged frames as lists (the report's detection maps): instance, gap to the slow vehicle's rear face
+    (``distance_m``), ``hit``, ``perceivable`` and the frame's conditions."""
+    f = ref.frames
+    table = {"instance": f["instance_key"].astype(str).tolist(),
+             "distance_m": (f["rear_m"] - LIDAR_TO_FRONT_M).round(3).tolist(), "hit": det["hit"].tolist(),
+             "perceivable": f["perceivable"].tolist()}
+    return table | {c: f[c].tolist() for c in FRAME_COLUMNS if c in f}
+
+
 def verdict(data_dir, predictions_dir, threshold: float, latency_ms: float | None = None, split: str = "test",
             rule: Rule = Rule(), model: str | None = None, ref: reference.Reference | None = None) -> dict:
     """The verdict of one predictions folder on a scenario set (module docstring): ``{rule, threshold, model,
-    n_frames, n_frames_predicted, instances, phantoms, summary}`` (tables as lists of records)."""
+    n_frames, n_frames_predicted, instances, phantoms, summary, frames}`` (tables as lists of records; ``frames``
+    as ``frame_table``)."""
     if latency_ms is not None and not latency_ms >= 0:
         raise ValueError(f"latency {latency_ms} ms: must be a number >= 0")
     reference.check_predictions(data_dir, predictions_dir)
@@ -192,7 +205,7 @@ def verdict(data_dir, predictions_dir, threshold: float, latency_ms: float | Non
     return {"rule": asdict(rule), "threshold": float(threshold), "model": model, "split": split,
             "n_frames": int(len(det)), "n_frames_predicted": int(det["predicted"].sum()),
             "instances": _records(rows), "phantoms": _records(phantom_rates(ref, det, rule, model)),
-            "summary": _records(pass_summary(rows))}
+            "summary": _records(pass_summary(rows)), "frames": frame_table(ref, det)}
 
 
 def reference_of(data_dir, split: str = "test", rule: Rule = Rule()) -> reference.Reference:
