@@ -217,10 +217,17 @@ def _space_section(run: tables.Run, t: dict) -> list[Section]:
                       report_space.answer_intro(t), [("", matrix, 2)], ["sotif_margins"], lead=True)] \
         if not matrix.empty else []
     return answer + [Section("sotif_space", "SOTIF over the scenario space", report_space.section_intro(run.summary, t),
-                             [("Triggering conditions: the swept condition bins with the lowest pass rate",
+                             [("Model pairs whose verdicts differ (exact McNemar, p < 0.05)",
+                               _apart(t.get("sotif_pairs", pd.DataFrame())), 3),
+                              ("Triggering conditions: the swept condition bins with the lowest pass rate",
                                t.get("triggering_conditions", pd.DataFrame()), 2),
                               ("Expected calibration error per weather class", t.get("calibration", pd.DataFrame()), 3)],
                              [*_boundary_names(run, t), "reliability"])]
+
+
+def _apart(pairs: pd.DataFrame) -> pd.DataFrame:
+    """The model pairs the McNemar test separates (every pair: tables/sotif_pairs.csv)."""
+    return pairs[pairs["apart"]] if not pairs.empty else pairs
 
 
 def _boundary_names(run: tables.Run, t: dict) -> list[str]:

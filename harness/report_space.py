@@ -5,7 +5,9 @@ recomputed here but the grouping of instance verdicts into pass rates (``harness
 Tables (``tables/<name>.csv``): ``sotif_instances`` (one row per model, set, instance and verdict: perception or
 system), ``sotif_pass_rates`` (per model, set, verdict, body class, condition column and bin: preventable
 instances, passes, rate, Wilson 95 % interval over instances, too_few, unpreventable ones), ``sotif_phantoms``
-(per model, set and weather: phantom in-path boxes and events per hour), ``triggering_conditions`` (per model
+(per model, set and weather: phantom in-path boxes and events per hour), ``sotif_pairs`` (per set, verdict and
+pair of models: exact McNemar on the verdicts, paired bootstrap on the median a_req; ``harness.verdict_pairs``),
+``triggering_conditions`` (per model
 the car-bodied condition bins with the lowest perception pass rate), ``sotif_boundary`` (per model and map the
 judged frames and in-path hits per (condition, distance) cell) and ``calibration`` (per model, IoU and weather
 class: boxes and ECE).
@@ -20,6 +22,7 @@ from matplotlib.figure import Figure
 
 from harness import figures
 from harness.sotif_space import MIN_INSTANCES, boundary_grid, pass_rates
+from harness.verdict_pairs import pair_table
 
 N_TRIGGERING = 5  # bins per model in the triggering-conditions table
 HEADLINE, APART = "car", "outside the learned classes"  # harness.reference.body_class
@@ -223,7 +226,9 @@ def build(summary: dict) -> dict[str, pd.DataFrame]:
     """The section's tables by name (empty when the run has no scenario-space results)."""
     inst = instances_table(summary)
     rates = pass_rate_table(inst)
+    pairs = pair_table(inst) if not inst.empty and inst["model"].nunique() > 1 else pd.DataFrame()
     return {"sotif_instances": inst, "sotif_pass_rates": rates, "sotif_phantoms": phantom_table(summary),
+            "sotif_pairs": pairs,
             "triggering_conditions": triggering_table(rates), "sotif_boundary": boundary_table(frames_table(summary)),
             "calibration": calibration_table(summary)}
 
@@ -356,6 +361,8 @@ def section_intro(summary: dict, t: dict) -> str:
             f"each axis split into bins of at least {MIN_INSTANCES} instances, with a 95% Wilson score interval over "
             "instances: the SOTIF set's instances are 21 weather copies of each drive (ClearNoon#1 and HardRainNight#1 "
             "are one drive), so its interval over-counts the evidence. Phantom braking: boxes in the ego's lane "
-            "corridor that lie on no object, per hour of judged frames (tables/sotif_phantoms.csv). BEV IoU >= 0.5 "
+            "corridor that lie on no object, per hour of judged frames (tables/sotif_phantoms.csv). Two models differ on "
+            "an instance set only where an exact McNemar test on their paired verdicts says so (p < 0.05; "
+            "tables/sotif_pairs.csv, with a paired bootstrap over drives or instances on the median a_req). BEV IoU >= 0.5 "
             "stays a box-quality column (box_iou05_share). Calibration: expected calibration error of the scores "
             "against a match at 3D IoU 0.7 / 0.5, 10 equal-width bins.")
