@@ -33,7 +33,7 @@ SMOKE_BANNER = ("Smoke run: numbers meaningless.",  # (heading, text) on a quick
 HOW_TO_READ = {  # one sentence opening each section: how to read it
     "rain": "Compare a model's rain cells with its dry cell: a loss counts where the intervals do not overlap. "
             "The IoU 0.5 rows are the figures the summary quotes.",
-    "models": "Each row is one detector: compare the SOTIF columns (higher AP and more presets passed are "
+    "models": "Each row is one detector: compare the SOTIF columns (higher AP and more instances passed are "
               "better, lower latency is cheaper); the val column shows how well each one trained.",
     "main": "Read a row to compare the models in one weather and a column to see how one model's AP falls "
             "from the clear presets to rain; overlapping intervals mark differences the test set cannot "
