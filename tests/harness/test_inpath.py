@@ -96,3 +96,15 @@ def test_phantoms_by_hand():
     assert inpath.phantoms(ghosts, objects, 0.0).tolist() == [True, False, False, False, False, False]
     assert inpath.phantoms(np.zeros((0, 7)), objects, 0.0).tolist() == []
     assert inpath.phantoms(ghosts[:1], np.zeros((0, 7)), 0.0).tolist() == [True]
+
+
+def test_lane_curvature_recovers_random_arcs():
+    """A slow car placed on the arc of curvature k (heading along it, offset o to the left of its lane centre)
+    gives back k."""
+    rng = np.random.default_rng(4)
+    for k, s, o in zip(rng.uniform(-0.004, 0.004, 100), rng.uniform(10, 80, 100), rng.uniform(-0.5, 0.5, 100)):
+        theta = k * s  # heading after an arc length s from the origin along +x
+        centre = np.array([np.sin(theta) / k, (1 - np.cos(theta)) / k]) if abs(k) > 1e-12 else np.array([s, 0.0])
+        left = np.array([-np.sin(theta), np.cos(theta)])
+        x, y = centre + o * left
+        assert inpath.lane_curvature(np.array([x, y, 0, 4.7, 1.9, 1.5, theta]), o) == pytest.approx(k, abs=1e-9)

@@ -248,3 +248,16 @@ def test_cli_bad_predictions_and_latency_exit_2(scenario_set, tmp_path, capsys):
 def test_body_class():
     assert reference.body_class("suv") == "car" and reference.body_class("van") == "outside the learned classes"
     assert reference.body_class("truck") == "outside the learned classes"
+
+
+def test_phantom_events_against_a_loop():
+    """Rising edges of "k flagged frames within the window" counted frame by frame."""
+    rule = verdict.Rule()
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        n = int(rng.integers(0, 40))
+        t = np.round(np.arange(n) * 0.1, 3)
+        flagged = rng.uniform(size=n) < rng.uniform()
+        on = [sum(1 for j in range(i + 1) if flagged[j] and t[j] > t[i] - 0.5 + 1e-6) >= 3 for i in range(n)]
+        want = sum(1 for i in range(n) if on[i] and (i == 0 or not on[i - 1]))
+        assert verdict.phantom_events(t, flagged, rule) == want
