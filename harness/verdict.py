@@ -83,8 +83,11 @@ def _reference_row(g: pd.DataFrame, d0: float, dv: float, rule: Rule) -> dict:
     ref_s = _confirm(t, g["perceivable"].to_numpy(bool), rule)
     ref = _decide(ref_s, 0.0, d0, dv, rule)
     reason = None
+
+    def ok(hits) -> bool:  # would a reference confirming on these frames pass?
+        return _decide(_confirm(t, hits, rule), 0.0, d0, dv, rule)["passed"]
+
     if not ref["passed"]:
-        ok = lambda hits: _decide(_confirm(t, hits, rule), 0.0, d0, dv, rule)["passed"]  # noqa: E731
         reason = decision.unpreventable_reason(ok(np.ones(len(t), bool)),
                                                ok(g["in_range"].to_numpy() >= rule.visible_min),
                                                ok(g["unoccluded"].to_numpy() >= rule.visible_min))
