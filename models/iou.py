@@ -145,12 +145,9 @@ def bounds_apart(a: Tensor, b: Tensor, gap: float = _APART) -> Tensor:
     return (((a[:, 0] - b[:, 0]).abs() > hxa + hxb + gap) | ((a[:, 1] - b[:, 1]).abs() > hya + hyb + gap))
 
 
-def iou_bev_sparse(a: Tensor, b: Tensor) -> Tensor:
-    """(Ka, Kb) rotated BEV IoU computed only for pairs whose circumcircles overlap and whose
-    bounds are not apart (:func:`bounds_apart`), in chunks of pairs.
-
-    For eager use with many boxes (anchors x ground truth): equal to :func:`iou_bev`, bit for bit.
-    """
+def _sparse(a: Tensor, b: Tensor, pairs) -> Tensor:
+    """(Ka, Kb) ``pairs(a[i], b[j])`` for the pairs whose circumcircles overlap and whose bounds are not
+    apart (:func:`bounds_apart`), in chunks of pairs; 0 for the others (they do not intersect)."""
     ra = 0.5 * torch.sqrt(a[:, 3] ** 2 + a[:, 4] ** 2)  # (Ka,) circumradius
     rb = 0.5 * torch.sqrt(b[:, 3] ** 2 + b[:, 4] ** 2)
     dist = torch.cdist(a[:, :2], b[:, :2])  # (Ka, Kb)
@@ -160,5 +157,20 @@ def iou_bev_sparse(a: Tensor, b: Tensor) -> Tensor:
     out = a.new_zeros(a.shape[0], b.shape[0])
     for start in range(0, ia.numel(), _PAIR_CHUNK):
         ca, cb = ia[start:start + _PAIR_CHUNK], ib[start:start + _PAIR_CHUNK]
-        out[ca, cb] = iou_bev_pairs(a[ca], b[cb])
+        out[ca, cb] = pairs(a[ca], b[cb])
     return out
+
+
+def iou_bev_sparse(a: Tensor, b: Tensor) -> Tensor:
+    """(Ka, Kb) rotated BEV IoU computed only for pairs whose circumcircles overlap and whose
+    bounds are not apart (:func:`bounds_apart`), in chunks of pairs.
+
+    For eager use with many boxes (anchors x ground truth): equal to :func:`iou_bev`, bit for bit.
+    """
+    return _sparse(a, b, iou_bev_pairs)
+
+
+def ioa_bev_sparse(a: Tensor, b: Tensor) -> Tensor:
+    """(Ka, Kb) share of each a box's BEV area inside each b box (intersection over a's area), sparse as
+    :func:`iou_bev_sparse`: how much of an anchor lies in an ignored region, whatever the region's size."""
+    return _sparse(a, b, lambda pa, pb: _ratio(intersection_bev_pairs(pa, pb), pa[:, 3] * pa[:, 4]))

@@ -137,7 +137,7 @@ def plan_instance_jobs(cfg: GenerateConfig) -> list[FrameJob]:
     for i, inst in enumerate(instances(sp, cfg.seed)):
         run = instance_run(cfg, i)
         per_instance.append((instance_steps(run, inst.sotif_config(cfg.sotif), sp.lead_in_frames, sp.window_slack_s,
-                                            sp.window_10hz_max_s, sp.window_max_s), len(run)))
+                                            sp.window_max_s), len(run)))
     specs = [(w, i, k, win, per_instance[i][1]) for w in cfg.weathers for i in range(sp.instances)
              for k, win in per_instance[i][0]]
     return [FrameJob(n, f"{n:06d}", w, k, "val" if i in val else "test", length, i, win)

@@ -2,7 +2,7 @@ import numpy as np
 import shapely.geometry as sg
 import torch
 
-from models.iou import corners_bev, iou_3d, iou_bev, iou_bev_pairs, iou_bev_sparse
+from models.iou import corners_bev, ioa_bev_sparse, iou_3d, iou_bev, iou_bev_pairs, iou_bev_sparse
 
 
 def _boxes(rng, n, spread=6.0):
@@ -38,6 +38,16 @@ def test_iou_bev_and_3d_match_shapely():
     np.testing.assert_allclose(iou_bev(ta, tb).numpy(), _shapely_iou(a, b), atol=2e-5)
     np.testing.assert_allclose(iou_3d(ta, tb).numpy(), _shapely_iou(a, b, True), atol=2e-5)
     np.testing.assert_allclose(iou_bev_sparse(ta, tb).numpy(), _shapely_iou(a, b), atol=2e-5)
+
+
+def test_ioa_bev_sparse_matches_shapely():
+    rng = np.random.default_rng(3)
+    a, b = _boxes(rng, 25), _boxes(rng, 30)
+    want = np.array([[_poly(x).intersection(_poly(y)).area / (x[3] * x[4]) for y in b] for x in a])
+    np.testing.assert_allclose(ioa_bev_sparse(torch.from_numpy(a), torch.from_numpy(b)).numpy(), want, atol=2e-5)
+    # a car-sized box on a truck: all of it inside (IoU 8.55 / 29.3 = 0.29)
+    car, truck = torch.tensor([[2.25, 0, 0, 4.5, 1.9, 1.5, 0]]), torch.tensor([[5.75, 0, 0, 11.5, 2.55, 3.8, 0]])
+    assert abs(float(ioa_bev_sparse(car, truck)) - 1.0) < 1e-6 and float(iou_bev_sparse(car, truck)) < 0.3
 
 
 def test_iou_degenerate_cases():
