@@ -226,6 +226,27 @@ def cmd_run(a) -> int:
     return 0
 
 
+def cmd_verdict(a) -> int:
+    from harness.sotif import operating_threshold
+    from harness.verdict import REACTIONS, Rule, verdict, write_verdict
+    out = _output_file(a.output)
+    if a.latency_ms is not None and not a.latency_ms >= 0:
+        raise ValueError(f"--latency-ms {a.latency_ms:g}: a latency must be >= 0 ms")
+    if a.threshold is not None and not 0.0 <= a.threshold <= 1.0:
+        raise ValueError(f"--threshold {a.threshold:g}: a score threshold lies in [0, 1]")
+    data, predictions = Path(a.data), Path(a.predictions)
+    threshold, source = (a.threshold, "given") if a.threshold is not None else operating_threshold(data, predictions)
+    result = verdict(data, predictions, threshold, latency_ms=a.latency_ms, split=a.split,
+                     rule=Rule(reaction_s=REACTIONS[a.reaction]), model=a.model)
+    result["threshold_source"] = source
+    write_verdict(out, result)
+    for row in result["summary"]:
+        print(f"{row['verdict']:>10} {row['body_class']:<28} {row['n_pass']}/{row['n']} preventable instances passed "
+              f"({row['n_unpreventable']} unpreventable)")
+    print(f"verdict written to {out}")
+    return 0
+
+
 def cmd_report(a) -> int:
     from harness.provenance import check_run
     from harness.report import render
@@ -403,6 +424,26 @@ def _add_run(sub, quiet) -> None:
     s.set_defaults(func=cmd_run)
 
 
+def _add_verdict(sub, quiet) -> None:
+    s = sub.add_parser("verdict", parents=[quiet], help="the SOTIF verdict of a detector's predictions on a scenario set",
+                       **command_text("verdict"))
+    s.add_argument("--data", required=True, help="a scenario set (simulate --instances N, or --preset sweep)")
+    s.add_argument("--predictions", required=True, help="folder of KITTI result files of the set's frames (predict)")
+    s.add_argument("--output", required=True, type=_path, help="FILE.csv: the instance table; other names: JSON")
+    s.add_argument("--latency-ms", type=float,
+                   help="the detector's latency per frame (e.g. its p90): adds the system verdict, on the frames it "
+                        "can process, the latency added to the decision time (default: perception verdict only)")
+    s.add_argument("--threshold", type=float,
+                   help="the detector's operating score threshold (default: F1-optimal on the set's val split "
+                        "when it is predicted, else 0.3)")
+    s.add_argument("--split", default="test", help="the split judged (default test)")
+    s.add_argument("--reaction", choices=["system", "human"], default="system",
+                   help="reaction time after the confirmation: an automated system's 0.35 s (UN R157) or a "
+                        "driver's 1.0 s (default system)")
+    s.add_argument("--model", help="the name in the rows (default: the predictions folder's name)")
+    s.set_defaults(func=cmd_verdict)
+
+
 def _add_report(sub, quiet) -> None:
     s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report",
                        **command_text("report"))
@@ -429,6 +470,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_predict(sub, quiet)
     _add_evaluate(sub, quiet)
     _add_run(sub, quiet)
+    _add_verdict(sub, quiet)
     _add_report(sub, quiet)
     return p
 
