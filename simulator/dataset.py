@@ -79,7 +79,8 @@ def _check_instances(preset, instances, frames, weathers, val_share: float | Non
         if frames is not None or weathers is not None or instances != 1:
             raise ValueError("a bounds set takes neither frames, weathers nor instances: one instance per probe")
         probes = check_probes(probes)
-        return ScenarioSpace(len(probes), sweep=True, probes=probes, val_share=0.0)
+        # every frame test; no lead-in: the verdict reads the frames from the lane change on
+        return ScenarioSpace(len(probes), sweep=True, probes=probes, val_share=0.0, lead_in_frames=0)
     if not isinstance(instances, (int, np.integer)) or isinstance(instances, bool) or instances < 1:
         raise ValueError(f"instances must be an integer >= 1, got {instances!r}")
     if preset == "train" and instances != 1:

@@ -41,6 +41,7 @@ def test_probe_rows_weather_and_held_streams(tmp_path):
     probes = [Probe(SCENARIO, "rain", 0.0), Probe(SCENARIO, "water", 0.0), Probe(SCENARIO, "water", 0.0, 1),
               Probe(SCENARIO, "fog", 80.0), Probe(SCENARIO, "reflectance", 0.7)]
     cfg = _cfg(probes)
+    assert all(j.in_window for j in plan_jobs(cfg))  # no lead-in: every frame from the lane change on
     assert row_columns(cfg)[:len(ROW_COLUMNS) + len(INSTANCE_COLUMNS)] == ROW_COLUMNS + INSTANCE_COLUMNS
     assert [p.axis for p in sweep_points(cfg.space, 3)] == ["rain", "water", "water", "fog", "reflectance"]
     assert sweep_weather(probes[4].point()) == sweep_weather(probes[1].point())  # clear, dry
