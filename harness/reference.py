@@ -26,7 +26,7 @@ from harness.sotif import load_meta
 from simulator.scenario import SotifConfig
 from simulator.vehicles import BODY_TYPES
 
-AXES = ("preset", "rain", "fog", "water")  # meta/frames.csv's sweep_axis values
+AXES = ("preset", "rain", "fog", "water", "reflectance")  # meta/frames.csv's sweep_axis values (bounds sets: reflectance)
 LEARNED = "Car"  # the class the detectors are trained on; other bodies are reported apart
 IOU_BEV_MIN = 0.5
 
