@@ -48,7 +48,8 @@ def test_cast_keeps_embree_triangle_and_recomputes_distance(highway_scene):
     dirs = np.c_[np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)]
     origin = np.array([300.0, -5.0, 1.9])
     hits = highway_scene.cast(origin, dirs)
-    ref = raycast.first_hit_distance(highway_scene.world.triangles, np.broadcast_to(origin, dirs.shape), dirs)
+    tris = np.concatenate([highway_scene.world.triangles, *highway_scene.vehicle_triangles])  # the shared scene's
+    ref = raycast.first_hit_distance(tris, np.broadcast_to(origin, dirs.shape), dirs)  # vehicles, if any are set
     assert np.isfinite(hits.t).sum() > 1500
     np.testing.assert_array_equal(np.isfinite(hits.t), np.isfinite(ref))
     np.testing.assert_allclose(hits.t[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=1e-5, atol=1e-4)
