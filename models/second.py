@@ -12,6 +12,7 @@ from torch import Tensor
 
 from models.anchor_head import HeadConfig
 from models.multiclass_head import PublishedHeadConfig
+from models.recipe import Recipe
 from models.single_stage import AnchorDetector, bev_stages
 from models.sparse import SparseTensor, height_compress
 from models.vfe import MeanVFE
@@ -54,6 +55,9 @@ BACKBONE_8X = Backbone8xConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2), Stag
                                     StageSpec(64, (2, 2, 2), (0, 1, 1), 2)), 128, (0, 0, 0))
 PUBLISHED = replace(KITTI, backbone3d=BACKBONE_8X, head=PublishedHeadConfig(nms_pre=4096, nms_iou=0.01, max_out=500))
 CONFIGS = {"tiny": TINY, "compact": SECONDConfig(), "kitti": PUBLISHED}
+# compact: 12 epochs (val AP40 3D moderate on 45 held-out frames, seed 0: 70.2 after 6, 84.8 after 12; after
+# 3 a lottery between seeds)
+RECIPE = Recipe(epochs={"compact": 12})
 
 
 class SECOND(AnchorDetector):

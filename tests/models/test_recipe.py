@@ -3,6 +3,7 @@ peak learning rate, weight decay, gradient clip), cold and warm-started, the sib
 from and the run profiles' model profiles. Moving a recipe must not change one of them."""
 import pytest
 
+from models import zoo
 from models.zoo import MODEL_NAMES
 
 # (epochs, batch_size, lr, weight_decay, grad_clip) per model and profile, cold start
@@ -22,19 +23,17 @@ RUN_PROFILES = {"quick": "tiny", "default": "compact", "full": "kitti"}
 
 
 def schedule(name: str, profile: str, warm: bool) -> tuple:
-    from harness.train import train_config
-    s = train_config(name, profile, warm=warm)
+    s = zoo.resolve(name, profile, warm=warm).schedule
     return (s.epochs, s.batch_size, s.lr, s.weight_decay, s.grad_clip)
 
 
 def warm_from(name: str):
-    from harness.run import WARM_FROM as found
-    return found.get(name)
+    assert zoo.resolve(name, "tiny", warm=False).warm_from is None  # a cold start has no sibling
+    return zoo.resolve(name, "tiny", warm=True).warm_from
 
 
 def warm_aliases(name: str) -> tuple:
-    from models.zoo import WARM_START_ALIASES
-    return WARM_START_ALIASES.get(name, ())
+    return zoo.recipe(name).warm_aliases
 
 
 def test_every_model_has_a_pinned_recipe():
@@ -59,3 +58,25 @@ def test_warm_start_is_pinned(name):
 def test_run_profiles_map_to_model_profiles():
     from harness.run import PROFILES
     assert {k: v.model_profile for k, v in PROFILES.items()} == RUN_PROFILES
+
+
+@pytest.mark.parametrize("name", MODEL_NAMES)
+def test_a_resolved_recipe_holds_the_profiles_network_and_config(name):
+    import torch
+    r = zoo.resolve(name, "tiny")
+    assert r.config == zoo.config(name, "tiny") and r.network is zoo.detector_class(name)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(3)
+        a = r.build().state_dict()
+        torch.manual_seed(3)
+        b = zoo.build(name, "tiny").state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+def test_recipe_errors_are_clear():
+    with pytest.raises(ValueError, match="unknown profile 'huge'"):
+        zoo.resolve("second", "huge")
+    with pytest.raises(ValueError, match="unknown profile"):
+        zoo.Recipe(epochs={"fast": 3})
+    with pytest.raises(ValueError, match="warm_lr without warm_from"):
+        zoo.Recipe(warm_lr=1e-3)
