@@ -6,7 +6,7 @@
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 from torch import Tensor
 
@@ -21,11 +21,12 @@ from models.voxelize import Grid, Voxels, hard_voxelize
 
 
 @dataclass(frozen=True)
-class SECONDConfig:
+class SECONDNetwork:
+    """SECOND's network from its voxels on (range, voxel size, sparse 3D backbone, 2D backbone, anchor
+    head): the whole of DV-SECOND's config and the LiDAR part of MVX-Net's."""
+
     pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.0)  # metres: the labelled highway
     voxel_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # metres
-    max_points: int = 5  # per voxel
-    max_voxels: int = 40000
     backbone3d: VoxelBackboneConfig = VoxelBackboneConfig(
         16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 1), StageSpec(64, (2, 2, 2), (1, 1, 1), 1),
              StageSpec(64, (2, 1, 1), (0, 1, 1), 1)), 64, (1, 0, 0))
@@ -35,6 +36,17 @@ class SECONDConfig:
     upsample_strides: tuple[float, ...] = (2, 4)
     upsample_filters: tuple[int, ...] = (64, 64)
     head: HeadConfig = HeadConfig(anchor_z=-1.0)
+
+
+def network_fields(cfg: SECONDNetwork) -> dict:
+    """The ``SECONDNetwork`` fields of ``cfg`` by name (to build another config on the same network)."""
+    return {f.name: getattr(cfg, f.name) for f in fields(SECONDNetwork)}
+
+
+@dataclass(frozen=True)
+class SECONDConfig(SECONDNetwork):
+    max_points: int = 5  # per voxel
+    max_voxels: int = 40000
 
 
 TINY = SECONDConfig(
