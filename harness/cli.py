@@ -228,6 +228,30 @@ def cmd_run(a) -> int:
     return 0
 
 
+def cmd_verdict(a) -> int:
+    from harness.sotif import operating_threshold
+    from harness.verdict import REACTIONS, Rule, verdict, write_verdict
+    out = _output_file(a.output)
+    if a.latency_ms is not None and not a.latency_ms >= 0:
+        raise ValueError(f"--latency-ms {a.latency_ms:g}: a latency must be >= 0 ms")
+    if a.threshold is not None and not 0.0 <= a.threshold <= 1.0:
+        raise ValueError(f"--threshold {a.threshold:g}: a score threshold lies in [0, 1]")
+    data, predictions = Path(a.data), Path(a.predictions)
+    for option, folder in (("--data", data), ("--predictions", predictions)):
+        if folder.resolve() in out.resolve().parents:
+            raise ValueError(f"--output {out}: inside the {option} folder {folder}; write the verdict elsewhere")
+    threshold, source = (a.threshold, "given") if a.threshold is not None else operating_threshold(data, predictions)
+    result = verdict(data, predictions, threshold, latency_ms=a.latency_ms, split=a.split,
+                     rule=Rule(reaction_s=REACTIONS[a.reaction]), model=a.model)
+    result["threshold_source"] = source
+    write_verdict(out, result)
+    for row in result["summary"]:
+        print(f"{row['verdict']:>10} {row['body_class']:<28} {row['n_pass']}/{row['n']} preventable instances passed "
+              f"({row['n_unpreventable']} unpreventable)")
+    print(f"verdict written to {out}")
+    return 0
+
+
 def cmd_report(a) -> int:
     if a.run_dir is None and not a.docs:
         raise ValueError("give a run folder (reports/NAME) to render, or --docs to write the documents from the sample")
@@ -321,8 +345,8 @@ IMPORT_EXAMPLE = """example:
   sotif-bench export --model pointpillars --checkpoint pp.pt --out pointpillars.onnx
 
 published networks: --from openpcdet --model pointpillars (tools/cfgs/kitti_models/pointpillar.yaml),
---from openpcdet --model second (second.yaml), --from mmdet3d --model dv_second
-(configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py)"""
+--from openpcdet --model second (second.yaml), --from openpcdet --model parta2 (PartA2.yaml),
+--from mmdet3d --model dv_second (configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py)"""
 
 
 def _add_import(sub, quiet) -> None:
@@ -336,7 +360,7 @@ def _add_import(sub, quiet) -> None:
                                    "and writes nothing.")
     s.add_argument("--from", dest="source", required=True, choices=("openpcdet", "mmdet3d"),
                    help="the code base that wrote the checkpoint")
-    s.add_argument("--model", required=True, help="pointpillars or second (openpcdet), dv_second (mmdet3d)")
+    s.add_argument("--model", required=True, help="pointpillars, second or parta2 (openpcdet), dv_second (mmdet3d)")
     s.add_argument("--checkpoint", required=True, help="the published .pth file")
     s.add_argument("--out", required=True, type=_path, help="the checkpoint (.pt) to write")
     s.add_argument("--force", action="store_true", help=FORCE_HELP)
@@ -411,6 +435,26 @@ def _add_run(sub, quiet) -> None:
     s.set_defaults(func=cmd_run)
 
 
+def _add_verdict(sub, quiet) -> None:
+    s = sub.add_parser("verdict", parents=[quiet], help="the SOTIF verdict of a detector's predictions on a scenario set",
+                       **command_text("verdict"))
+    s.add_argument("--data", required=True, help="a scenario set (simulate --instances N, or --preset sweep)")
+    s.add_argument("--predictions", required=True, help="folder of KITTI result files of the set's frames (predict)")
+    s.add_argument("--output", required=True, type=_path, help="FILE.csv: the instance table; other names: JSON")
+    s.add_argument("--latency-ms", type=float,
+                   help="the detector's latency per frame (e.g. its p90): adds the system verdict, on the frames it "
+                        "can process, the latency added to the decision time (default: perception verdict only)")
+    s.add_argument("--threshold", type=float,
+                   help="the detector's operating score threshold (default: F1-optimal on the set's val split "
+                        "when it is predicted, else 0.3)")
+    s.add_argument("--split", default="test", help="the split judged (default test)")
+    s.add_argument("--reaction", choices=["system", "human"], default="system",
+                   help="reaction time after the confirmation: an automated system's 0.35 s (UN R157) or a "
+                        "driver's 1.0 s (default system)")
+    s.add_argument("--model", help="the name in the rows (default: the predictions folder's name)")
+    s.set_defaults(func=cmd_verdict)
+
+
 def _add_report(sub, quiet) -> None:
     s = sub.add_parser("report", parents=[quiet], help="re-render a run directory's HTML and Markdown report",
                        **command_text("report"))
@@ -441,6 +485,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_predict(sub, quiet)
     _add_evaluate(sub, quiet)
     _add_run(sub, quiet)
+    _add_verdict(sub, quiet)
     _add_report(sub, quiet)
     return p
 

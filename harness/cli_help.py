@@ -50,6 +50,14 @@ COMMANDS = {  # name: (what it does, examples)
              "sotif-bench run --out reports/default --jobs 2",
              "sotif-bench run --models none --checkpoints imported/ --lidar-model carla --instances 1 "
              "--out reports/published"]),
+    "verdict": ("The SOTIF verdict of a detector's KITTI result files on a scenario set (simulate --instances N or "
+                "--preset sweep): per instance whether a reference that confirms the slow vehicle as soon as it is "
+                "perceivable could stop (preventable, or why not), when the detector confirms it (3 in-path hits "
+                "within 0.5 s), its delay behind the reference, the deceleration its decision leaves (pass <= 6 "
+                "m/s^2) and phantom in-path boxes per hour. FILE.csv gets the instance table, any other name the "
+                "whole result as JSON.",
+                ["sotif-bench verdict --data data/sweep --predictions pred/pointpillars --output verdict.json",
+                 "sotif-bench verdict --data data/sweep --predictions pred/mine --latency-ms 120 --output mine.csv"]),
     "report": ("Render a run folder's tables, figures, report.md and index.html again from its result files; "
                "with --sample, publish them as the repository's sample (reports/sample); with --docs, write the "
                "README's results table and the numbers of docs/results.md from the sample's tables.",

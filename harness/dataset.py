@@ -1,8 +1,9 @@
 """KITTI-layout data set as :class:`harness.core.types.Sample` items (built on harness.core.kitti).
 
-``KittiDataset(root, split, with_image=False)``: frames listed in ``<root>/ImageSets/<split>.txt``;
-``ds[i]`` reads velodyne points, calib and labels (converted to LiDAR boxes) and, when
-``with_image``, the left colour image as (3, H, W) float32 in [0, 1] with ``lidar2img``.
+``KittiDataset(root, split, with_image=False, keep=False)``: frames listed in
+``<root>/ImageSets/<split>.txt``; ``ds[i]`` reads velodyne points, calib and labels (converted to
+LiDAR boxes) and, when ``with_image``, the left colour image as (3, H, W) float32 in [0, 1] with
+``lidar2img``; with ``keep``, each frame is read from disk once (training's epochs).
 ``dataset_hash(root)`` fingerprints the data a model was trained on.
 """
 from __future__ import annotations
@@ -27,21 +28,39 @@ def has_split(root, split: str) -> bool:
     return path.is_file() and bool(kitti.read_image_set(path))
 
 
-class KittiDataset:
-    """Frames of one split of a KITTI-layout folder."""
+KEEP_BYTES = 2 << 30  # frames a dataset with ``keep`` holds in memory: up to 2 GiB of arrays
 
-    def __init__(self, root, split: str = "train", with_image: bool = False):
+
+class KittiDataset:
+    """Frames of one split of a KITTI-layout folder. With ``keep`` (training: every epoch reads the
+    same frames), the frames read are kept in memory, as long as they fit in ``KEEP_BYTES``, and
+    returned again as the same :class:`Sample` (whose arrays the caller must not change in place)."""
+
+    def __init__(self, root, split: str = "train", with_image: bool = False, keep: bool = False):
         self.root = Path(root)
         if not self.root.is_dir():
             raise kitti.KittiError(self.root, "data folder not found")
         self.split = split
         self.with_image = with_image
         self.frame_ids = kitti.read_image_set(split_file(self.root, split))
+        self._kept: dict[int, Sample] | None = {} if keep else None
+        self._kept_bytes = 0
 
     def __len__(self) -> int:
         return len(self.frame_ids)
 
     def __getitem__(self, i: int) -> Sample:
+        if self._kept is None:
+            return self._read(i)
+        if i in self._kept:
+            return self._kept[i]
+        sample = self._read(i)
+        size = sum(a.nbytes for a in (sample.points, sample.gt_boxes, sample.image) if a is not None)
+        if self._kept_bytes + size <= KEEP_BYTES:
+            self._kept[i], self._kept_bytes = sample, self._kept_bytes + size
+        return sample
+
+    def _read(self, i: int) -> Sample:
         fid = self.frame_ids[i]
         points = kitti.read_points(kitti.frame_path(self.root, "velodyne", fid))
         calib = kitti.read_calib(kitti.frame_path(self.root, "calib", fid))

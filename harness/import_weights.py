@@ -25,7 +25,7 @@ from pathlib import Path
 import torch
 
 from harness.core.files import atomic_write_bytes
-from harness.published_maps import CLASS_CONFIGS, CONFIG_FILES, IGNORED, SPARSE, TABLES
+from harness.published_maps import CLASS_CONFIGS, CONFIG_FILES, FC, IGNORED, SPARSE, TABLES
 from models import zoo
 
 SOURCES = ("openpcdet", "mmdet3d")
@@ -133,6 +133,8 @@ def convert(path: Path, source: str, model: str, state: dict, module_meta: dict,
         t = state[ref]
         if kind == SPARSE and layouts[name] is not None and _layouts(t, sparse[name][2][0], ours[name].shape):
             t = sparse_weight(t, layouts[name])
+        if kind == FC and isinstance(t, torch.Tensor) and t.dim() == 3 and t.shape[-1] == 1:
+            t = t[..., 0]  # Conv1d(kernel 1) [out, in, 1] -> Linear [out, in]
         if not isinstance(t, torch.Tensor) or t.shape != ours[name].shape:
             misfit.append(f"{ref} {tuple(getattr(t, 'shape', ()))} for {name} {tuple(ours[name].shape)}")
             continue

@@ -10,16 +10,19 @@ its layer j is our j - 1), ``kind`` how the tensor is laid out:
 - ``SPARSE``: a sparse-conv weight; spconv 2.x holds ``[out, kD, kH, kW, in]``, spconv 1.x (and
   MMCV's ops) ``[kD, kH, kW, in, out]``; ours is ``(K, in, out)`` with z slowest
   (``harness.import_weights.sparse_weight``).
+- ``FC``: a fully connected layer, OpenPCDet's RoI heads' ``Conv1d`` of kernel 1 (``[out, in, 1]``) for
+  our ``Linear`` (``[out, in]``); its BatchNorm tensors as they are.
 
 ``IGNORED`` names are bookkeeping, not weights (OpenPCDet's ``global_step``).
-Sources: OpenPCDet ``tools/cfgs/kitti_models/{pointpillar,second}.yaml`` (``PillarVFE``,
-``VoxelBackBone8x``, ``BaseBEVBackbone``, ``AnchorHeadSingle``); MMDetection3D 1.4
+Sources: OpenPCDet ``tools/cfgs/kitti_models/{pointpillar,second,PartA2}.yaml`` (``PillarVFE``,
+``VoxelBackBone8x``, ``UNetV2``, ``BaseBEVBackbone``, ``AnchorHeadSingle``, ``PointIntraPartOffsetHead``,
+``PartA2FCHead``); MMDetection3D 1.4
 ``configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py``
 (``SparseEncoder``, ``SECOND``, ``SECONDFPN``, ``Anchor3DHead``).
 """
 from __future__ import annotations
 
-COPY, SPARSE = "copy", "sparse"
+COPY, SPARSE, FC = "copy", "sparse", "fc"
 BN = r"(?P<p>weight|bias|running_mean|running_var|num_batches_tracked)"
 CONV = r"(?P<p>weight|bias)"
 
@@ -39,6 +42,42 @@ _OPENPCDET_8X = [
     (r"backbone_3d\.conv(?P<i>[234])\.(?P<j>\d+)\.1\." + BN, "backbone3d.stages.{i}.{j}.1.norm.{p}", {"i": -2}, COPY),
     (r"backbone_3d\.conv_out\.0\.weight", "backbone3d.out.0.weight", {}, SPARSE),
     (r"backbone_3d\.conv_out\.1\." + BN, "backbone3d.out.1.norm.{p}", {}, COPY),
+]
+
+
+def _retarget(rules: list, prefixes: dict[str, str]) -> list:
+    """``rules`` with our names' leading ``prefixes`` replaced (a shared table under another module)."""
+    def target(t: str) -> str:
+        return next((new + t[len(old):] for old, new in prefixes.items() if t.startswith(old)), t)
+    return [(p, target(t), s, k) for p, t, s, k in rules]
+
+
+# OpenPCDet UNetV2's decoder: conv_up_t{i} / conv_up_m{i} at encoder level i - 1 (1 = the stem), inv_conv{i}
+# from level i - 1 to i - 2, conv5 at level 0
+_OPENPCDET_UNET = [
+    (r"backbone_3d\.conv_up_t(?P<i>[1-4])\.conv(?P<j>[12])\.weight", "unet.lateral.{i}.conv{j}.weight", {"i": -1},
+     SPARSE),
+    (r"backbone_3d\.conv_up_t(?P<i>[1-4])\.bn(?P<j>[12])\." + BN, "unet.lateral.{i}.bn{j}.{p}", {"i": -1}, COPY),
+    (r"backbone_3d\.conv_up_m(?P<i>[1-4])\.0\.weight", "unet.merge.{i}.0.weight", {"i": -1}, SPARSE),
+    (r"backbone_3d\.conv_up_m(?P<i>[1-4])\.1\." + BN, "unet.merge.{i}.1.norm.{p}", {"i": -1}, COPY),
+    (r"backbone_3d\.inv_conv(?P<i>[2-4])\.0\.weight", "unet.up.{i}.weight", {"i": -2}, SPARSE),
+    (r"backbone_3d\.inv_conv(?P<i>[2-4])\.1\." + BN, "unet.up_norm.{i}.norm.{p}", {"i": -2}, COPY),
+    (r"backbone_3d\.conv5\.0\.0\.weight", "unet.out.0.weight", {}, SPARSE),
+    (r"backbone_3d\.conv5\.0\.1\." + BN, "unet.out.1.norm.{p}", {}, COPY),
+]
+
+# Part-A2's point head (CLS_FC, PART_FC empty: one Linear each) and PartA2FCHead: its SubM blocks on the
+# pooled grid, then Conv1d(k=1) fc layers (SHARED_FC, CLS_FC and REG_FC of two layers: index 7 is the output)
+_OPENPCDET_PARTA2_HEADS = [
+    (r"point_head\.cls_layers\.0\." + CONV, "seg_head.0.{p}", {}, COPY),
+    (r"point_head\.part_reg_layers\.0\." + CONV, "part_head.0.{p}", {}, COPY),
+    (r"roi_head\.conv_part\.(?P<j>[01])\.0\.weight", "rcnn.part_branch.{j}.0.weight", {}, SPARSE),
+    (r"roi_head\.conv_part\.(?P<j>[01])\.1\." + BN, "rcnn.part_branch.{j}.1.norm.{p}", {}, COPY),
+    (r"roi_head\.conv_rpn\.(?P<j>[01])\.0\.weight", "rcnn.feat_branch.{j}.0.weight", {}, SPARSE),
+    (r"roi_head\.conv_rpn\.(?P<j>[01])\.1\." + BN, "rcnn.feat_branch.{j}.1.norm.{p}", {}, COPY),
+    (r"roi_head\.shared_fc_layer\.(?P<i>\d+)\.(?P<p>.+)", "rcnn.refine.shared.{i}.{p}", {}, FC),
+    (r"roi_head\.(?P<b>cls|reg)_layers\.7\." + CONV, "rcnn.refine.{b}.{p}", {}, FC),
+    (r"roi_head\.(?P<b>cls|reg)_layers\.(?P<i>[0-6])\.(?P<p>.+)", "rcnn.refine.{b}_fc.{i}.{p}", {}, FC),
 ]
 
 _MMDET3D_ENCODER = [
@@ -64,11 +103,14 @@ TABLES = {
     ("openpcdet", "pointpillars"): [(r"vfe\.pfn_layers\.0\.(?P<m>linear|norm)\.(?P<p>.+)", "vfe.{m}.{p}", {}, COPY)]
     + _OPENPCDET_BEV,
     ("openpcdet", "second"): [*_OPENPCDET_8X, *_OPENPCDET_BEV],
+    ("openpcdet", "parta2"): [*_retarget(_OPENPCDET_8X, {"backbone3d.": "unet.encoder."}), *_OPENPCDET_UNET,
+                              *_retarget(_OPENPCDET_BEV, {"head.": "rpn."}), *_OPENPCDET_PARTA2_HEADS],
     ("mmdet3d", "dv_second"): _MMDET3D_ENCODER,
 }
 CONFIG_FILES = {
     ("openpcdet", "pointpillars"): "OpenPCDet tools/cfgs/kitti_models/pointpillar.yaml",
     ("openpcdet", "second"): "OpenPCDet tools/cfgs/kitti_models/second.yaml",
+    ("openpcdet", "parta2"): "OpenPCDet tools/cfgs/kitti_models/PartA2.yaml",
     ("mmdet3d", "dv_second"): "MMDetection3D configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py",
 }
 # Published configs of the same network for fewer classes: (source, model, the file's classes) -> config.

@@ -34,7 +34,7 @@ SMOKE_BANNER = ("Smoke run: numbers meaningless.",  # (heading, text) on a quick
 HOW_TO_READ = {  # one sentence opening each section: how to read it
     "rain": "Compare a model's rain cells with its dry cell: a loss counts where the intervals do not overlap. "
             "The IoU 0.5 rows are the figures the summary quotes.",
-    "models": "Each row is one detector: compare the SOTIF columns (higher AP and more presets passed are "
+    "models": "Each row is one detector: compare the SOTIF columns (higher AP and more instances passed are "
               "better, lower latency is cheaper); the val column shows how well each one trained.",
     "main": "Read a row to compare the models in one weather and a column to see how one model's AP falls "
             "from the clear presets to rain; overlapping intervals mark differences the test set cannot "
@@ -218,15 +218,22 @@ def _space_section(run: tables.Run, t: dict) -> list[Section]:
     """"SOTIF over the scenario space" (``harness.report_space``), when the run has its results."""
     if "sotif_instances" not in t:
         return []
-    matrix = report_space.rate_matrix(t.get("sotif_pass_rates", pd.DataFrame()))
+    matrix = report_space.rate_matrix(t.get("sotif_pass_rates", pd.DataFrame()), t.get("sotif_phantoms"))
     answer = [Section("sotif_answer", "Where each detector stops finding the slow car in time",
                       report_space.answer_intro(t), [("", matrix, 2)], ["sotif_margins"], lead=True)] \
         if not matrix.empty else []
     return answer + [Section("sotif_space", "SOTIF over the scenario space", report_space.section_intro(run.summary, t),
-                             [("Triggering conditions: the swept condition bins with the lowest pass rate",
+                             [("Model pairs whose verdicts differ (exact McNemar, p < 0.05)",
+                               _apart(t.get("sotif_pairs", pd.DataFrame())), 3),
+                              ("Triggering conditions: the swept condition bins with the lowest pass rate",
                                t.get("triggering_conditions", pd.DataFrame()), 2),
                               ("Expected calibration error per weather class", t.get("calibration", pd.DataFrame()), 3)],
                              [*_boundary_names(run, t), "reliability"])]
+
+
+def _apart(pairs: pd.DataFrame) -> pd.DataFrame:
+    """The model pairs the McNemar test separates (every pair: tables/sotif_pairs.csv)."""
+    return pairs[pairs["apart"]] if not pairs.empty else pairs
 
 
 def _boundary_names(run: tables.Run, t: dict) -> list[str]:

@@ -79,8 +79,10 @@ _RUNTIME = {
 }
 _SOTIF_ROW = {"threshold?": OPT, "distance_if_no_braking_m?": OPT, "stopping_distance_m?": OPT,
               "time_after_lane_change_s?": OPT}
-_SPACE = {"rule": {"k": NUMBER, "n": NUMBER, "latency_s": NUMBER},  # harness.sotif_space.instance_view
-          "instances": ListOf({"instance_key": TEXT, "weather": TEXT, "margin_m?": OPT, "n_frames": NUMBER}),
+_SPACE = {"rule": {"k": NUMBER, "window_s": NUMBER, "reaction_s": NUMBER},  # harness.verdict.verdict
+          "instances": ListOf({"instance": TEXT, "weather": TEXT, "verdict": TEXT, "preventable": ANY,
+                               "margin_m?": OPT, "n_frames": NUMBER}),
+          "phantoms": ListOf({"weather": TEXT, "n_frames": NUMBER, "hours": NUMBER, "n_false": NUMBER}),
           "frames": Each(ListOf(ANY))}
 _RELIABILITY = {"ece": OPT, "n": NUMBER,  # harness.calibration.reliability
                 "bins": {"count": ListOf(NUMBER), "confidence": ListOf(OPT), "accuracy": ListOf(OPT)}}

@@ -33,6 +33,7 @@ from harness.core.files import atomic_write_text, folder_lock, remove_temp_files
 from harness.jobs import interrupted, job_init
 from harness.model_stages import checkpoint_of, export_stage, import_export
 from harness.predict_eval import predict_evaluate
+from harness.run_boundaries import boundaries_stage
 from harness.stages import Stages, file_digest
 from models.recipe import ModelRecipe
 
@@ -62,6 +63,7 @@ class RunConfig:
     sweep_instances: int | None = None  # instances of the weather sweep set (data/sweep); None: no sweep set
     val_frames: int | None = None  # the val set's held-out training-generator frames (harness.valset); None: none
     published: tuple = ()  # (tag, checkpoint file) of the imported models the run evaluates (harness.published_run)
+    bounds: str | None = None  # the boundary searches' plan (harness.run_boundaries.PLANS); None: none
 
 
 def model_recipes(cfg: RunConfig, names: list[str]) -> dict[str, ModelRecipe]:
@@ -109,9 +111,9 @@ PROFILES = {
     # default: 30 sweep instances, 10 per weather axis, so that a condition bin can hold >= 5 instances
     # quick: the study's SOTIF set cut to 42 frames and a 3-instance sweep set (smoke run, numbers mean nothing)
     "quick": RunConfig("quick", "tiny", train_frames=40, sotif_frames=42, epochs=2, bootstrap=50, runtime_frames=3,
-                       sweep_instances=3, val_frames=10),
+                       sweep_instances=3, val_frames=10, bounds="quick"),
     "default": RunConfig("default", "compact", train_frames=300, sotif_frames=None, epochs=None, runtime_frames=20,
-                         sotif_instances=2, sweep_instances=30, val_frames=300),
+                         sotif_instances=2, sweep_instances=30, val_frames=300, bounds="default"),
     # the references train every model from nothing: so does the full profile
     "full": RunConfig("full", "kitti", train_frames=3000, sotif_frames=None, epochs=None, device="cuda", jobs=1,
                       warm_start=False),
@@ -497,6 +499,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
             probe = _runtime_probe(stages, cfg, run_dir, name)
             entry = _model_summary(cfg, run_dir, name, *done[name], probe)
             summary[name] = published_run.mark(cfg, run_dir, name, entry)
+        boundaries_stage(stages, cfg, run_dir, summary, runtime)
         data_stats(run_dir)
         ids = lambda s, d="sotif": len((run_dir / "data" / d / "ImageSets" / f"{s}.txt").read_text().split())
         infos = {p.stem: json.loads(p.read_text())["info"] for p in sorted((run_dir / ".stages").glob("*.json"))}

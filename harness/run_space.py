@@ -1,19 +1,20 @@
 """The scenario-space part of a run: the weather sweep set's predictions and evaluation, and each
-model's SOTIF-over-instances and calibration summary (``harness.sotif_space``, ``harness.calibration``).
+model's SOTIF verdict over instances and calibration summary (``harness.verdict``, ``harness.calibration``).
 
 The sweep set (``data/sweep``, ``RunConfig.sweep_instances`` instances over rain rate, fog visibility
 and road water) is predicted into ``predictions_sweep/<model>/`` and evaluated into
 ``results/<model>.sweep.json`` grouped by ``SWEEP_GROUPS``, as the SOTIF set is. The summary adds to
 each model of ``results.json``:
 
-- ``sotif_space.<sotif|sweep>``: ``harness.sotif_space.instance_view`` (rule, instances, frames) at
-  the model's operating threshold (the SOTIF view's) with its onnxruntime latency p50 added to the
-  reaction time;
+- ``sotif_space.<sotif|sweep>``: ``harness.verdict.verdict`` (rule, instances, phantoms, summary, frames)
+  at the model's operating threshold (the SOTIF view's), the system verdict at its onnxruntime latency p90
+  (measured by the run's probe on this machine);
 - ``calibration.<0.7|0.5>.<all|precipitation class>``: ``harness.calibration.calibration_view``
   over the SOTIF set's test frames.
 """
 from __future__ import annotations
 
+from functools import lru_cache
 from pathlib import Path
 
 from harness.predict_eval import predict_evaluate
@@ -36,21 +37,28 @@ def predict_eval_sweep(stages: Stages, cfg, run_dir: Path, name: str, sweep_hash
                      threads, group_by=SWEEP_GROUPS)
 
 
-def latency_s(runtime: dict) -> float:
-    """The model's onnxruntime latency p50 in seconds (0 when it was not measured)."""
-    p50 = ((runtime or {}).get("onnxruntime") or {}).get("latency_ms_p50")
-    return float(p50) / 1000.0 if isinstance(p50, (int, float)) else 0.0
+def latency_ms(runtime: dict) -> float | None:
+    """The model's onnxruntime latency p90 in ms (None when it was not measured: no system verdict)."""
+    p90 = ((runtime or {}).get("onnxruntime") or {}).get("latency_ms_p90")
+    return float(p90) if isinstance(p90, (int, float)) else None
+
+
+@lru_cache(maxsize=4)
+def _reference(data: Path, stamp: int):
+    """The reference of a data set's test split, once per set (and per meta/frames.csv) in a run's process."""
+    from harness.verdict import reference_of
+    return reference_of(data)
 
 
 def space_summary(run_dir: Path, name: str, threshold: float, runtime: dict) -> dict:
-    """``{"sotif_space": {set: instance_view}, "calibration": ...}`` of one model (module docstring)."""
+    """``{"sotif_space": {set: verdict}, "calibration": ...}`` of one model (module docstring)."""
     from harness.calibration import calibration_view
-    from harness.sotif_space import instance_view
-    lat = latency_s(runtime)
+    from harness.verdict import verdict
     views = {}
     for data_set in SETS:
         data, pred = run_dir / "data" / data_set, predictions_of(run_dir, data_set, name)
         if (data / "ImageSets" / "test.txt").is_file() and pred.is_dir():
-            views[data_set] = instance_view(data, pred, threshold, lat)
+            ref = _reference(data.resolve(), (data / "meta" / "frames.csv").stat().st_mtime_ns)
+            views[data_set] = verdict(data, pred, threshold, latency_ms=latency_ms(runtime), model=name, ref=ref)
     return {"sotif_space": views,
             "calibration": calibration_view(run_dir / "data" / "sotif", predictions_of(run_dir, "sotif", name))}

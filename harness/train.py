@@ -101,6 +101,12 @@ def _batches(n: int, batch_size: int, seed: int, epoch: int) -> list[np.ndarray]
     return [order[i:i + batch_size] for i in range(0, n, batch_size)]
 
 
+def load_batch(ds: KittiDataset, frames, rng: np.random.Generator, aug: AugmentConfig = AugmentConfig(),
+               database=None) -> list:
+    """The frames ``frames`` of ``ds``, read and augmented in order with the draws of ``rng``."""
+    return [augment(ds[int(i)], rng, aug, database) for i in frames]
+
+
 def _run_epoch(net, ds, optimizer, scheduler, tcfg: Schedule, seed: int, epoch: int, bar,
                aug: AugmentConfig = AugmentConfig(), database=None, rank: int = 0, world: int = 1) -> float:
     """One epoch; with ``world`` > 1 data-parallel workers, this one (``rank``) takes the frames
@@ -112,7 +118,7 @@ def _run_epoch(net, ds, optimizer, scheduler, tcfg: Schedule, seed: int, epoch: 
 
     def load(step: int) -> list:
         rng = np.random.default_rng([seed, epoch, step, *own])  # a step's augmentation draws: its own generator
-        return [augment(ds[int(i)], rng, aug, database) for i in batches[step][rank::world]]
+        return load_batch(ds, batches[step][rank::world], rng, aug, database)
 
     # the RoI heads' dropout draws from torch's global generator and their RoI sampling from the
     # model's own: seed both per epoch (and leave the caller's torch state alone), so that a
@@ -286,7 +292,7 @@ def _session(recipe: ModelRecipe, data: Path, out: Path, epochs: int | None, see
         own = net.state_dict()
         warm = {"warm_start": {"init_weights": zoo.weights_digest({n: own[n] for n in loaded}),
                                "warm_tensors": len(loaded)}}
-    ds = KittiDataset(data, "train", with_image=net.uses_camera)
+    ds = KittiDataset(data, "train", with_image=net.uses_camera, keep=True)  # read once, augmented every epoch
     if len(ds) == 0:
         raise ValueError(f"{data / 'ImageSets' / 'train.txt'}: no training frames")
     use_gts = uses_gt_sampling(net, aug)

@@ -17,7 +17,7 @@ from torch import Tensor, nn
 from torch.nn import functional as F
 
 from models import box_coder
-from models.iou import iou_bev_sparse
+from models.iou import ioa_bev_sparse, iou_bev_sparse
 from models.losses import box_regression_loss, direction_loss, sigmoid_focal_loss
 from models.nms import select_ranked
 
@@ -55,14 +55,15 @@ def make_anchors(pc_range, feat_hw: tuple[int, int], cfg: HeadConfig) -> Tensor:
 def assign_targets(anchors: Tensor, gt: Tensor, ignore: Tensor, cfg: HeadConfig):
     """Labels (A,) in {1 positive, 0 negative, -1 ignored} and matched gt index (A,).
 
-    Anchors overlapping an ``ignore`` box (Van, DontCare) by >= neg_iou are ignored rather
-    than negatives.
+    Anchors with a share >= neg_iou of their area inside an ``ignore`` box (Van, Truck, DontCare) are
+    ignored rather than negatives: by area, not IoU, so that a car-sized anchor on a truck (IoU <= 0.3)
+    is not taught that the truck is nothing.
     """
     a = anchors.shape[0]
     labels = torch.zeros(a, dtype=torch.long)
     matched = torch.zeros(a, dtype=torch.long)
     if ignore.shape[0]:
-        labels[iou_bev_sparse(anchors, ignore).max(dim=1).values >= cfg.neg_iou] = -1
+        labels[ioa_bev_sparse(anchors, ignore).max(dim=1).values >= cfg.neg_iou] = -1
     if gt.shape[0] == 0:
         return labels, matched
     iou = iou_bev_sparse(anchors, gt)  # (A, K)

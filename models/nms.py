@@ -9,7 +9,8 @@
 - ``nms_in_order``: greedy rotated NMS of boxes given best first, as a pair pre-filter
   (``suppression_candidates``), the rotated IoU of the candidate pairs and a fixed-point loop.
 - ``select_ranked``: the two together, with a score threshold and a cap, for the final boxes of
-  the one-stage heads and the proposals and final boxes of the two-stage models.
+  the one-stage heads and the proposals and final boxes of the two-stage models
+  (``ranked_selection``: the indices it keeps).
 
 With boxes sorted by score and S[j, i] = (j < i and IoU(j, i) > t), greedy NMS keeps box i
 iff no KEPT box j suppresses it. Iterating ``keep <- not any_j(keep[j] and S[j, i])`` from
@@ -136,9 +137,13 @@ def select_ranked(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: i
 
     boxes (A, 7), scores (A,) in [0, 1] -> (M, 7), (M,) best first.
     """
+    kept = ranked_selection(boxes, scores, score_thresh, nms_pre, nms_iou, max_out)
+    return boxes[kept], scores[kept]
+
+
+def ranked_selection(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre: int,
+                     nms_iou: float, max_out: int) -> Tensor:
+    """(M,) int64 indices into boxes (A, 7) / scores (A,) that :func:`select_ranked` keeps, best first."""
     order = ranked_topk(scores, nms_pre)  # (K,)
-    boxes, scores = boxes[order], scores[order]
-    good = scores > score_thresh
-    boxes, scores = boxes[good], scores[good]
-    keep = nms_in_order(boxes, nms_iou)[:max_out]
-    return boxes[keep], scores[keep]
+    order = order[scores[order] > score_thresh]
+    return order[nms_in_order(boxes[order], nms_iou)[:max_out]]

@@ -9,6 +9,10 @@
       --submanifold 3D convs on the occupied pooled cells, 2x max-pool--> flatten
       --refine head--> IoU-guided score, residuals
       --decode--> rcnn_boxes (K, 7) --score threshold + BEV NMS--> boxes, scores
+
+The ``kitti`` profile is OpenPCDet's PartA2.yaml network (``sotif-bench import``; docs/models.md): its
+UNetV2 decoder (``PublishedUNet``), one-layer point heads, the 3-class RPN whose proposals keep their best
+class, the 12^3 RoI grid flattened, and the Car boxes of one class-agnostic NMS over every RoI.
 """
 from __future__ import annotations
 
@@ -29,8 +33,11 @@ from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITarget
                              finalize, propose, refine_loss, roi_support, sample_rois)
 from models.roi_pool import roiaware_pool
 from models.single_stage import bev_stages, frame_targets
-from models.sparse import SparseInverseConv3d, SparseTensor, SubMConv3d, conv_block, height_compress, to_dense
-from models.vfe import MeanVFE
+from models.multiclass_head import PublishedHeadConfig
+from models.second import BACKBONE_8X
+from models.sparse import (SparseBNReLU, SparseInverseConv3d, SparseTensor, SubMConv3d, conv_block, height_compress,
+                           to_dense)
+from models.vfe import MeanVFE, RowBatchNorm
 from models.voxel_backbone import StageSpec, VoxelBackbone, VoxelBackboneConfig
 from models.voxelize import Grid, hard_voxelize
 
@@ -53,11 +60,14 @@ class PartA2Config:
     bev_up_strides: tuple[float, ...] = (2, 4)
     bev_up_filters: tuple[int, ...] = (64, 64)
     head: HeadConfig = HeadConfig()
+    decoder: str = "concat"  # UNet decoder: "concat" (SparseUNet) or "unetv2" (OpenPCDet's UNetV2, PublishedUNet)
+    point_hidden: bool = True  # a hidden layer (Linear + ReLU) in the seg and part heads (OpenPCDet: none)
     proposals_train: ProposalConfig = ProposalConfig(nms_pre=256, nms_iou=0.7, rois=64)
     proposals_test: ProposalConfig = ProposalConfig(nms_pre=256, nms_iou=0.7, rois=32)
     part_margin: float = 0.2  # m: voxels this close outside a box are ignored by the seg loss
     roi_grid: int = 6  # pooled cells per RoI axis
     roi_conv: int = 32  # channels of the convs on the pooled grid
+    roi_down: bool = True  # a merging SubM conv and a 2x max-pool before the flatten (OpenPCDet: neither)
     seg_mask: float = 0.3  # part location of voxels scored below this pooled as zero
     fc: tuple[int, ...] = (128, 128)
     branch_fc: tuple[int, ...] = (128,)  # per confidence / residual branch after the shared fc
@@ -68,6 +78,10 @@ class PartA2Config:
     weight_part: float = 1.0
     weight_rcnn: float = 1.0
     seed: int = 0  # RoI sampling draws
+
+    def __post_init__(self):
+        if self.decoder not in ("concat", "unetv2"):
+            raise ValueError(f"decoder must be 'concat' or 'unetv2', got {self.decoder!r}")
 
     @property
     def grid(self) -> Grid:
@@ -86,21 +100,20 @@ CONFIGS = {
         proposals_test=ProposalConfig(64, 0.7, 8), roi_grid=4, roi_conv=8, fc=(32,),
         branch_fc=(32,), targets=RoITargetConfig(per_frame=16, fg_iou=0.65)),
     "compact": PartA2Config(),
-    "kitti": PartA2Config(  # OpenPCDet tools/cfgs/kitti_models/PartA2.yaml
+    "kitti": PartA2Config(  # OpenPCDet tools/cfgs/kitti_models/PartA2.yaml (docs/models.md)
         pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), voxel_size=(0.05, 0.05, 0.1),
         max_voxels=40000,  # OpenPCDet's test-time cap (16000 in training)
-        # a 40-voxel-deep grid (OpenPCDet pads it to 41) with stage-3 z padding 1 ends at depth 2:
-        # 256 BEV channels, as OpenPCDet's NUM_BEV_FEATURES
-        backbone3d=VoxelBackboneConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2),
-                                            StageSpec(64, (2, 2, 2), (1, 1, 1), 2),
-                                            StageSpec(64, (2, 2, 2), (1, 1, 1), 2)), 128, (0, 0, 0)),
+        backbone3d=BACKBONE_8X,  # UNetV2's encoder is VoxelBackBone8x: 41 cells deep, 256 BEV channels
         bev_layers=(5, 5), bev_up_strides=(1, 2),
         bev_filters=(128, 256), bev_up_filters=(256, 256),
-        head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
+        # every class's anchors sit on -1.78 m (second.yaml: -0.6 m for Pedestrian and Cyclist)
+        head=PublishedHeadConfig(bottoms=(-1.78, -1.78, -1.78), nms_pre=4096, nms_iou=0.1, max_out=500),
+        decoder="unetv2", point_hidden=False,
         proposals_train=ProposalConfig(9000, 0.8, 512), proposals_test=ProposalConfig(1024, 0.7, 100),
-        roi_grid=12, roi_conv=64, fc=(256, 256, 256), branch_fc=(256, 256),
+        roi_grid=12, roi_conv=64, roi_down=False, fc=(256, 256, 256), branch_fc=(256, 256),
         targets=RoITargetConfig(per_frame=128, fg_iou=0.65),
-        output=OutputConfig(score="rcnn")),  # the stage-2 confidence alone, as OpenPCDet
+        # the stage-2 confidence alone, boxes of every RoI, sizes uncapped, as OpenPCDet
+        output=OutputConfig(score="rcnn", nms_pre=4096, max_out=500, max_log_size=None, drop_empty=False)),
 }
 
 
@@ -133,6 +146,57 @@ class SparseUNet(nn.Module):
             cat = torch.cat([levels[i].features, torch.relu(up.features)], 1)
             y = self.merge[i](levels[i].with_features(cat))
         return y, height_compress(out)
+
+
+class SparseBasicBlock(nn.Module):
+    """Two SubM convs with BatchNorm, the input added back, ReLU (OpenPCDet's SparseBasicBlock)."""
+
+    def __init__(self, c: int):
+        super().__init__()
+        self.conv1, self.bn1 = SubMConv3d(c, c), RowBatchNorm(c, eps=1e-3, momentum=0.01)
+        self.conv2, self.bn2 = SubMConv3d(c, c), RowBatchNorm(c, eps=1e-3, momentum=0.01)
+
+    def forward(self, x: SparseTensor) -> SparseTensor:
+        out = torch.relu(self.bn1(self.conv1(x).features))  # (V, C)
+        out = self.bn2(self.conv2(x.with_features(out)).features)
+        return x.with_features(torch.relu(out + x.features))
+
+
+class PublishedUNet(nn.Module):
+    """OpenPCDet's UNetV2: the SECOND encoder (``VoxelBackBone8x``) and, per level coarse to fine, a
+    residual block on the encoder's features there (``conv_up_t``), concatenated after the coarser
+    result (``[bottom, lateral]``), a SubM conv of the concatenation (``conv_up_m``) plus its channel
+    pairs summed (``channel_reduction``), then an inverse conv block onto the finer level (``inv_conv``;
+    at level 0 a SubM block, ``conv5``). The coarsest level's "coarser result" is its own features.
+
+    forward(x (V, 4) at level 0) -> (decoded level-0 SparseTensor (V, C0), BEV (1, C*D, H, W)).
+    """
+
+    def __init__(self, c_in: int, cfg: VoxelBackboneConfig):
+        super().__init__()
+        self.encoder = VoxelBackbone(c_in, cfg)
+        channels = [cfg.stem_channels] + [s.channels for s in cfg.stages]
+        self.lateral = nn.ModuleList(SparseBasicBlock(c) for c in channels)
+        self.merge = nn.ModuleList(conv_block(SubMConv3d(2 * c, c), c) for c in channels)
+        self.up = nn.ModuleList(SparseInverseConv3d(channels[i + 1], channels[i], 3, s.stride, s.padding)
+                                for i, s in enumerate(cfg.stages))
+        self.up_norm = nn.ModuleList(SparseBNReLU(c) for c in channels[:-1])
+        self.out = conv_block(SubMConv3d(channels[0], channels[0]), channels[0])
+
+    def forward(self, x: SparseTensor) -> tuple[SparseTensor, Tensor]:
+        out, levels = self.encoder(x)
+        y = levels[-1]
+        for i in reversed(range(len(levels))):
+            cat = torch.cat([y.features, self.lateral[i](levels[i]).features], 1)  # (V_i, 2 C_i)
+            merged = self.merge[i](levels[i].with_features(cat)).features  # (V_i, C_i)
+            x = levels[i].with_features(merged + cat.view(cat.shape[0], merged.shape[1], 2).sum(2))
+            y = self.up_norm[i - 1](self.up[i - 1](x, levels[i - 1])) if i else self.out(x)
+        return y, height_compress(out)
+
+
+def point_head(c: int, out: int, hidden: bool) -> nn.Sequential:
+    """Per-voxel logits: [Linear(c, c), ReLU] if ``hidden``, then Linear(c, out)."""
+    return nn.Sequential(*([nn.Linear(c, c), nn.ReLU()] if hidden else []), nn.Linear(c, out))
 
 
 def part_targets(xyz: Tensor, gt: Tensor, margin: float) -> tuple[Tensor, Tensor, Tensor]:
@@ -182,7 +246,8 @@ class PartAggregationHead(nn.Module):
     on the foreground only); feature branch: max-pooled decoder features. Each branch is two
     SubM convs over the RoI cells that hold a voxel; the branches are concatenated, merged by one
     more SubM conv, max-pooled 2x2x2 (the empty cells stay zero, as spconv's SparseMaxPool3d),
-    flattened and fed to the refinement head.
+    flattened and fed to the refinement head. Without ``roi_down`` (OpenPCDet's PartA2FCHead) the
+    concatenation [feature, part] of every cell is flattened as it is.
     forward(rois (K, 7), xyz (V, 3), feats (V, C), seg (V,), part (V, 3)) -> logit (K,), deltas (K, 7).
     """
 
@@ -193,8 +258,10 @@ class PartAggregationHead(nn.Module):
         self.part_branch = nn.Sequential(conv_block(SubMConv3d(4, c, 3), c), conv_block(SubMConv3d(c, c, 3), c))
         c1 = cfg.backbone3d.stem_channels
         self.feat_branch = nn.Sequential(conv_block(SubMConv3d(c1, c, 3), c), conv_block(SubMConv3d(c, c, 3), c))
-        self.merge = conv_block(SubMConv3d(2 * c, 2 * c, 3), 2 * c)
-        side = -(-g // 2)
+        self.down = cfg.roi_down
+        if self.down:
+            self.merge = conv_block(SubMConv3d(2 * c, 2 * c, 3), 2 * c)
+        side = -(-g // 2) if self.down else g
         self.refine = RefineHead(2 * c * side ** 3, cfg.fc, cfg.branch_fc, cfg.dropout)
 
     def forward(self, rois: Tensor, xyz: Tensor, feats: Tensor, seg: Tensor,
@@ -206,6 +273,9 @@ class PartAggregationHead(nn.Module):
         cells = roi_sparse_grid(torch.cat([pooled[..., :4], pooled_feat], -1), occupied)
         x_part = self.part_branch(cells.with_features(cells.features[:, :4]))
         x_feat = self.feat_branch(cells.with_features(cells.features[:, 4:]))
+        if not self.down:  # OpenPCDet: [feature, part] channels of every cell, flattened
+            merged = cells.with_features(torch.cat([x_feat.features, x_part.features], 1))
+            return self.refine(roi_dense_grid(merged, rois.shape[0], self.g).flatten(1))
         merged = self.merge(cells.with_features(torch.cat([x_part.features, x_feat.features], 1)))
         dense = roi_dense_grid(merged, rois.shape[0], self.g)  # (K, 2c, g, g, g)
         pooled_down = F.max_pool3d(dense, 2, 2, ceil_mode=True)  # (K, 2c, g', g', g')
@@ -221,33 +291,43 @@ class PartA2(Detector):
         self.cfg = cfg
         self.grid = cfg.grid
         self.vfe = MeanVFE()
-        self.unet = SparseUNet(MeanVFE.out_channels, cfg.backbone3d)
+        self.unet = (PublishedUNet if cfg.decoder == "unetv2" else SparseUNet)(MeanVFE.out_channels, cfg.backbone3d)
         self.backbone2d, self.rpn = bev_stages(self.grid, cfg.backbone3d, cfg.pc_range, cfg.head, cfg.bev_layers,
                                                cfg.bev_strides, cfg.bev_filters, cfg.bev_up_strides, cfg.bev_up_filters)
         c1 = cfg.backbone3d.stem_channels
-        self.seg_head = nn.Sequential(nn.Linear(c1, c1), nn.ReLU(), nn.Linear(c1, 1))
-        self.part_head = nn.Sequential(nn.Linear(c1, c1), nn.ReLU(), nn.Linear(c1, 3))
+        self.seg_head = point_head(c1, 1, cfg.point_hidden)
+        self.part_head = point_head(c1, 3, cfg.point_hidden)
         nn.init.constant_(self.seg_head[-1].bias, -math.log((1 - 0.01) / 0.01))
         self.rcnn = PartAggregationHead(cfg)
+        self.reported = self.rpn.car if isinstance(cfg.head, PublishedHeadConfig) else 0  # the Car RoIs' label
         self.sampling_rng = np.random.default_rng(cfg.seed)
 
-    def stage1(self, points: Tensor):
+    def voxel_stage(self, points: Tensor):
         """points (N, 4) -> voxel centres (V, 3), voxel features (V, C1), seg logit (V,),
-        part logits (V, 3), BEV features (1, C, H, W)."""
+        part logits (V, 3), the BEV map entering the 2D backbone (1, C*D, H', W')."""
         voxels = hard_voxelize(points, self.grid, self.cfg.max_points, self.cfg.max_voxels)
         x = SparseTensor(self.vfe(voxels), voxels.coords, voxels.shape)  # (V, 4)
         fine, bev = self.unet(x)  # (V, C1), (1, C*D, H', W')
         xyz = voxel_centres(fine, self.grid)  # (V, 3) metres
         seg = self.seg_head(fine.features).squeeze(1)  # (V,)
         part = self.part_head(fine.features)  # (V, 3)
-        return xyz, fine.features, seg, part, self.backbone2d(bev)
+        return xyz, fine.features, seg, part, bev
+
+    def stage1(self, points: Tensor):
+        """:meth:`voxel_stage` with the BEV features (1, C, H, W) of the 2D backbone last."""
+        xyz, feats, seg, part, bev = self.voxel_stage(points)
+        return xyz, feats, seg, part, self.backbone2d(bev)
 
     def forward(self, points: Tensor):
         """points (N, 4) -> boxes (M, 7), scores (M,), rois (K, 7), roi_scores (K,), rcnn_boxes (K, 7)."""
-        xyz, feats, seg, part, bev = self.stage1(points)
-        rois, roi_scores = propose(self.rpn, bev, self.cfg.proposals_test)
+        return self.second_stage(*self.stage1(points))
+
+    def second_stage(self, xyz: Tensor, feats: Tensor, seg: Tensor, part: Tensor, bev: Tensor):
+        """:meth:`stage1`'s outputs -> :meth:`forward`'s: proposals, RoI-aware pooling, refinement, selection."""
+        rois, roi_scores, roi_labels = propose(self.rpn, bev, self.cfg.proposals_test)
         logit, deltas = self.rcnn(rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
-        boxes, scores, rcnn_boxes = finalize(rois, roi_scores, logit, deltas, self.cfg.output, roi_support(xyz, rois))
+        boxes, scores, rcnn_boxes = finalize(rois, roi_scores, logit, deltas, self.cfg.output, roi_support(xyz, rois),
+                                             roi_labels, self.reported)
         return boxes, scores, rois, roi_scores, rcnn_boxes
 
     def frame_loss(self, sample: Sample, device) -> dict[str, Tensor]:
@@ -262,7 +342,7 @@ class PartA2(Detector):
         losses["part"] = (F.binary_cross_entropy_with_logits(part[on], part_t[on])
                           if bool(on.any()) else part.sum() * 0.0)
         with torch.no_grad():
-            rois, _ = propose(self.rpn, bev, self.cfg.proposals_train)
+            rois, _, _ = propose(self.rpn, bev, self.cfg.proposals_train)
         targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng)
         targets.rois, targets.iou, targets.gt = (t.to(device) for t in (targets.rois, targets.iou, targets.gt))
         # the seg score enters stage 2 detached, the part locations not (as OpenPCDet)

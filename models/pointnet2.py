@@ -4,7 +4,8 @@ One frame, no batch axis; FPS and ball query also take a leading batch axis (Poi
 refinement runs them inside every RoI at once). Every operator accepts empty inputs:
 
 - ``farthest_point_sample``: iterative FPS, a ``while_loop`` (ONNX ``Loop``) when exported and
-  a Python loop in eager mode (same arithmetic, same result). The points are held as three
+  a Python loop in eager mode (same arithmetic, same result). Eager on the CPU, FPS and ball
+  query run the numba kernels of ``models.point_kernels`` (same indices). The points are held as three
   coordinate rows: onnxruntime broadcasts ``(B, N) - (B, 1)`` row by row but ``(N, 3) - (3,)``
   three elements at a time.
 - ``ball_queries``: the first ``nsample`` in-radius indices (``TopK`` of the index) of every
@@ -26,6 +27,7 @@ from torch import Tensor, nn
 from torch._higher_order_ops.while_loop import while_loop
 
 from models.base import tracing
+from models.point_kernels import ball_queries_cpu, farthest_point_sample_cpu, three_nn_cpu
 from models.vfe import RowBatchNorm
 
 _FAR = 1.0e4  # metres; position of the padding points used by three_nn_interpolate
@@ -95,8 +97,20 @@ def farthest_point_sample(xyz: Tensor, num: int) -> Tensor:
     if xyz.dim() == 3 and num > xyz.shape[1]:
         raise ValueError(f"farthest_point_sample: {num} samples from {xyz.shape[1]} points per batch row")
     batch = xyz if xyz.dim() == 3 else xyz[None]
-    idx = fps_loop(batch, num) if tracing() else _fps_eager(batch, num)
+    if tracing():
+        idx = fps_loop(batch, num)
+    elif _kernel_ready(batch):
+        idx = farthest_point_sample_cpu(batch, num)
+    else:
+        idx = _fps_eager(batch, num)
     return idx if xyz.dim() == 3 else idx[0, : torch.sym_min(xyz.shape[0], num)]
+
+
+def _kernel_ready(*tensors: Tensor) -> bool:
+    """Eager float32 CPU tensors with at least one point each (in every batch row): the numba kernels of
+    ``models.point_kernels`` apply (the same indices as the torch forms)."""
+    return not tracing() and all(t.device.type == "cpu" and t.dtype == torch.float32 and t.numel() > 0
+                                 for t in tensors)
 
 
 def _direct_d2(xyz: Tensor, centres: Tensor, pad: int) -> Tensor:
@@ -128,6 +142,14 @@ def ball_queries(xyz: Tensor, centres: Tensor, radii: Sequence[float],
     appended by ``group_points``). (One frame stays 2-D: a batch axis of 1 over a dynamic point
     count makes the exporter guard on strides.)
     """
+    if _kernel_ready(xyz, centres):
+        return ball_queries_cpu(xyz, centres, radii, nsamples)
+    return _ball_queries_torch(xyz, centres, radii, nsamples)
+
+
+def _ball_queries_torch(xyz: Tensor, centres: Tensor, radii: Sequence[float],
+                        nsamples: Sequence[int]) -> list[tuple[Tensor, Tensor]]:
+    """:func:`ball_queries` in torch ops: the graph's form."""
     n, pad = xyz.shape[-2], max(nsamples)
     d2 = _direct_d2(xyz, centres, pad)  # (..., M, N + pad) m^2, one matrix for every radius
     order = torch.arange(n + pad, device=xyz.device, dtype=d2.dtype)  # (N + pad,) float indices, exact < 2^24
@@ -166,9 +188,14 @@ def three_nn_interpolate(unknown: Tensor, known: Tensor, known_feats: Tensor) ->
     known_p = torch.cat([known, far], 0).T  # (3, M+3) axis-major
     feats_p = torch.cat([known_feats, known_feats.new_zeros(3, known_feats.shape[1])], 0)
     u = unknown.T  # (3, N)
-    dx, dy, dz = (u[i][:, None] - known_p[i] for i in range(3))  # (N, M+3) each: rows of (N, 1) - (M+3,)
-    d2 = dx * dx + dy * dy + dz * dz  # (N, M+3) m^2 (Mul, not Pow: the same bits, faster in onnxruntime)
-    d2_nn, idx = torch.topk(d2, 3, dim=1, largest=False, sorted=True)  # (N, 3)
+    if _kernel_ready(unknown, known_p.T):  # the same neighbours without the (N, M+3) matrix, their distances as below
+        idx = three_nn_cpu(unknown, known_p.T)  # (N, 3)
+        dx, dy, dz = (u[i][:, None] - known_p[i][idx] for i in range(3))  # (N, 3) each
+        d2_nn = dx * dx + dy * dy + dz * dz  # (N, 3) m^2
+    else:
+        dx, dy, dz = (u[i][:, None] - known_p[i] for i in range(3))  # (N, M+3) each: rows of (N, 1) - (M+3,)
+        d2 = dx * dx + dy * dy + dz * dz  # (N, M+3) m^2 (Mul, not Pow: the same bits, faster in onnxruntime)
+        d2_nn, idx = torch.topk(d2, 3, dim=1, largest=False, sorted=True)  # (N, 3)
     weight = 1.0 / torch.sqrt(d2_nn).clamp(min=1e-8)  # (N, 3)
     weight = weight / weight.sum(1, keepdim=True)
     neigh = group_points(feats_p, idx)  # (N, 3, C)

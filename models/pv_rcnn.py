@@ -214,7 +214,7 @@ class PVRCNN(Detector):
     def forward(self, points: Tensor):
         """points (N, 4) -> boxes (M, 7), scores (M,), rois (K, 7), roi_scores (K,), rcnn_boxes (K, 7)."""
         keypoints, kp_feats, _, bev, voxel_xyz = self.stage1(points)
-        rois, roi_scores = propose(self.rpn, bev, self.cfg.proposals_test)
+        rois, roi_scores, _ = propose(self.rpn, bev, self.cfg.proposals_test)
         logit, deltas = self.stage2(rois, keypoints, kp_feats)
         boxes, scores, rcnn_boxes = finalize(rois, roi_scores, logit, deltas, self.cfg.output,
                                              roi_support(voxel_xyz, rois))
@@ -227,7 +227,7 @@ class PVRCNN(Detector):
         kp_fg = keypoint_targets(keypoints, gt, self.cfg.kp_margin)
         losses["keypoint"] = sigmoid_focal_loss(kp_logit, kp_fg, torch.ones_like(kp_fg)) / kp_fg.sum().clamp(min=1.0)
         with torch.no_grad():
-            rois, _ = propose(self.rpn, bev, self.cfg.proposals_train)
+            rois, _, _ = propose(self.rpn, bev, self.cfg.proposals_train)
         targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng)
         targets.rois, targets.iou, targets.gt = (t.to(device) for t in (targets.rois, targets.iou, targets.gt))
         losses.update(refine_loss(*self.stage2(targets.rois, keypoints, kp_feats), targets, self.cfg.targets))

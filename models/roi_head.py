@@ -7,7 +7,8 @@
 - ``RefineHead``: shared MLP, then a confidence branch and a residual branch.
 - ``refine_loss``: the confidence (binary cross-entropy against a ramp of the RoI IoU, or a
   car / background label), smooth-L1 residuals and the corner loss on foreground RoIs.
-- ``propose``: anchor-RPN proposals (decode + ``models.nms.select_ranked``) that enter stage 2.
+- ``propose``: anchor-RPN proposals (decode + ``models.nms.ranked_selection``) that enter stage 2,
+  with their classes.
 - ``finalize``: refined boxes of every RoI, then score threshold + NMS for the final output.
 """
 from __future__ import annotations
@@ -24,7 +25,7 @@ from torch import Tensor, nn
 from harness.core.boxes import iou_3d
 from models.anchor_head import AnchorHead
 from models.box_frame import inside_boxes, rotate_to_box_frame
-from models.nms import select_ranked
+from models.nms import ranked_selection
 from models.pointnet2 import PointBatchNorm
 
 
@@ -131,15 +132,17 @@ def encode_canonical(gt: Tensor, rois: Tensor) -> Tensor:
                         size[:, 2], dyaw], 1)
 
 
-def decode_canonical(deltas: Tensor, rois: Tensor) -> Tensor:
-    """Inverse of encode_canonical: deltas (S, 7), rois (S, 7) -> boxes (S, 7), LiDAR frame."""
+def decode_canonical(deltas: Tensor, rois: Tensor, max_log_size: float | None = 4.0) -> Tensor:
+    """Inverse of encode_canonical: deltas (S, 7), rois (S, 7) -> boxes (S, 7), LiDAR frame.
+    The log size ratios are capped at ``max_log_size`` (None: not capped, as OpenPCDet's decoder)."""
     diag = torch.sqrt(rois[:, 3] ** 2 + rois[:, 4] ** 2)
     lx, ly = deltas[:, 0] * diag, deltas[:, 1] * diag
     c, s = torch.cos(rois[:, 6]), torch.sin(rois[:, 6])
     x = rois[:, 0] + lx * c - ly * s
     y = rois[:, 1] + lx * s + ly * c
     z = rois[:, 2] + deltas[:, 2] * rois[:, 5]
-    size = rois[:, 3:6] * torch.exp(deltas[:, 3:6].clamp(max=4.0))  # (S, 3)
+    log_size = deltas[:, 3:6] if max_log_size is None else deltas[:, 3:6].clamp(max=max_log_size)
+    size = rois[:, 3:6] * torch.exp(log_size)  # (S, 3)
     yaw = wrap(rois[:, 6] + deltas[:, 6])
     return torch.cat([torch.stack([x, y, z], 1), size, yaw[:, None]], 1)
 
@@ -241,11 +244,19 @@ class ProposalConfig:
     rois: int = 32  # proposals kept (stage-2 inputs)
 
 
-def propose(head: AnchorHead, feats: Tensor, cfg: ProposalConfig) -> tuple[Tensor, Tensor]:
-    """Stage-1 proposals from an anchor head: feats (1, C, H, W) -> rois (K, 7), scores (K,)."""
-    cls, box, dirs = head(feats)
+def propose(head: AnchorHead, feats: Tensor, cfg: ProposalConfig) -> tuple[Tensor, Tensor, Tensor]:
+    """Stage-1 proposals from an anchor head: feats (1, C, H, W) -> rois (K, 7), scores (K,), labels (K,)
+    int64. A multi-class head's anchor is scored by its best class, whose index is its label, and one
+    class-agnostic NMS selects (OpenPCDet's proposal_layer); a one-class head's labels are 0."""
+    cls, box, dirs = head(feats)  # (A,) or (A, n) logits
     boxes = head.decode(box, dirs)  # (A, 7)
-    return select_ranked(boxes, torch.sigmoid(cls), -1.0, cfg.nms_pre, cfg.nms_iou, cfg.rois)
+    scores = torch.sigmoid(cls)
+    if scores.dim() == 2:
+        scores, labels = scores.max(dim=1)  # (A,), (A,)
+    else:
+        labels = torch.zeros_like(scores, dtype=torch.long)
+    kept = ranked_selection(boxes, scores, -1.0, cfg.nms_pre, cfg.nms_iou, cfg.rois)  # (K,)
+    return boxes[kept], scores[kept], labels[kept]
 
 
 SCORE_RULES = ("rcnn", "geometric")
@@ -261,6 +272,8 @@ class OutputConfig:
     # "geometric", sqrt(stage-1 RoI score * stage-2 confidence) (CenterPoint's two-stage rule):
     # a short schedule leaves the IoU-guided confidence noisy, and the RPN score vetoes its outliers
     score: str = "geometric"
+    max_log_size: float | None = 4.0  # cap of the refined boxes' log size ratios (None: OpenPCDet's uncapped)
+    drop_empty: bool = True  # a RoI with no LiDAR data inside gives no box (``roi_support``; OpenPCDet keeps it)
 
     def __post_init__(self):
         if self.score not in SCORE_RULES:
@@ -283,16 +296,20 @@ def final_scores(roi_scores: Tensor, logit: Tensor, rule: str) -> Tensor:
 
 
 def finalize(rois: Tensor, roi_scores: Tensor, logit: Tensor, deltas: Tensor, cfg: OutputConfig,
-             support: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+             support: Tensor | None = None, roi_labels: Tensor | None = None,
+             reported: int = 0) -> tuple[Tensor, Tensor, Tensor]:
     """rois (K, 7), roi_scores (K,), logit (K,), deltas (K, 7) -> boxes (M, 7), scores (M,),
     rcnn_boxes (K, 7).
 
     ``support`` (K,) bool (``roi_support``): a RoI with no LiDAR data inside pooled nothing, so its
-    score is only the head's bias; such RoIs give no box (else an empty cloud gives boxes)."""
-    rcnn_boxes = decode_canonical(deltas, rois)  # (K, 7)
+    score is only the head's bias; such RoIs give no box (else an empty cloud gives boxes) when
+    ``cfg.drop_empty``. ``roi_labels`` (K,): the RoIs' classes (``propose``); the NMS is class-agnostic
+    and only the boxes of RoIs labelled ``reported`` are returned (OpenPCDet's labels of RCNN boxes)."""
+    rcnn_boxes = decode_canonical(deltas, rois, cfg.max_log_size)  # (K, 7)
     scores = final_scores(roi_scores, logit, cfg.score)
-    if support is not None:
+    if support is not None and cfg.drop_empty:
         scores = scores * support.to(scores.dtype)
-    boxes, scores = select_ranked(rcnn_boxes, scores, cfg.score_thresh, cfg.nms_pre, cfg.nms_iou,
-                                  cfg.max_out)
-    return boxes, scores, rcnn_boxes
+    kept = ranked_selection(rcnn_boxes, scores, cfg.score_thresh, cfg.nms_pre, cfg.nms_iou, cfg.max_out)
+    if roi_labels is not None:
+        kept = kept[roi_labels[kept] == reported]
+    return rcnn_boxes[kept], scores[kept], rcnn_boxes

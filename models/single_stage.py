@@ -18,7 +18,9 @@ from models.multiclass_head import make_head
 from models.voxel_backbone import VoxelBackboneConfig, output_shape
 from models.voxelize import Grid
 
-IGNORED_CLASSES = ("Van", "DontCare")  # KITTI: not Car, but not background either
+# not Car, but not background either: KITTI's Van and DontCare, and Truck (a car-sized box on a truck's rear is
+# what a braking system needs, so the Car head is not taught that trucks are nothing)
+IGNORED_CLASSES = ("Van", "Truck", "DontCare")
 
 
 def frame_targets(sample: Sample, device) -> tuple[Tensor, Tensor, Tensor]:

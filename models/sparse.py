@@ -192,15 +192,32 @@ def inverse_table(coarse: SparseTensor, fine: SparseTensor, kernel, stride, padd
     return lookup(coarse.index_grid(), coarse.shape, query, valid, coarse.coords.shape[0])
 
 
-def gather_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
+def gather_gemm(features: Tensor, table: Tensor, weight: Tensor, pairs: tuple | None = None) -> Tensor:
     """(V_out, C_out) = sum_k features[table[:, k]] @ weight[k]; table value V_in = zero row.
 
     Inference (and export) runs :func:`table_gemm`; with autograd on, :func:`pair_gemm` works
-    on the occupied entries only, which the backward pass repays.
+    on the occupied entries only (``pairs``: the table's :func:`table_pairs`, when known), which
+    the backward pass repays.
     """
     if training_form():
-        return pair_gemm(features, table, weight)
+        return pair_gemm(features, table, weight) if pairs is None else pair_gemm(features, table, weight, pairs)
     return table_gemm(features, table, weight)
+
+
+def table_pairs(table: Tensor, v_in: int) -> tuple[Tensor, Tensor, list[int]]:
+    """The occupied entries of a neighbour table (V_out, K) over ``v_in`` input rows: input rows
+    (M,), output rows (M,), grouped by kernel offset, and the count of each offset (K)."""
+    offset, out_row = torch.nonzero((table != v_in).T, as_tuple=True)  # (M,) grouped by offset
+    return table[out_row, offset], out_row, torch.bincount(offset, minlength=table.shape[1]).tolist()
+
+
+def subm_pairs(x: SparseTensor, kernel) -> tuple[Tensor, Tensor, list[int]]:
+    """:func:`table_pairs` of :func:`subm_table`, cached like it: the submanifold convs of one
+    resolution (SECOND's stem, Part-A2's decoder) share them."""
+    key = ("subm_pairs", _triple(kernel))
+    if key not in x.cache:
+        x.cache[key] = table_pairs(subm_table(x, kernel), x.coords.shape[0])
+    return x.cache[key]
 
 
 def table_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
@@ -211,7 +228,7 @@ def table_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
     return gathered.reshape(-1, k * c_in) @ weight.reshape(k * c_in, c_out)
 
 
-def pair_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
+def pair_gemm(features: Tensor, table: Tensor, weight: Tensor, pairs: tuple | None = None) -> Tensor:
     """:func:`table_gemm` over the occupied table entries only (spconv's rule-book form).
 
     A LiDAR surface fills a quarter to a half of a 3x3x3 neighbourhood; the one-GEMM form also
@@ -219,9 +236,7 @@ def pair_gemm(features: Tensor, table: Tensor, weight: Tensor) -> Tensor:
     (output row, input row) pairs of each kernel offset get one GEMM each, and the products
     are summed into their output rows (:class:`_PairGemm`).
     """
-    offset, out_row = torch.nonzero((table != features.shape[0]).T, as_tuple=True)  # (M,) grouped by offset
-    in_row = table[out_row, offset]  # (M,)
-    counts = torch.bincount(offset, minlength=weight.shape[0]).tolist()
+    in_row, out_row, counts = table_pairs(table, features.shape[0]) if pairs is None else pairs
     return _PairGemm.apply(features, weight, in_row, out_row, counts, table.shape[0])
 
 
@@ -278,8 +293,8 @@ class _SparseConvBase(nn.Module):
         nn.init.kaiming_uniform_(self.weight.view(k * c_in, c_out).T, a=math.sqrt(5))
         self.bias = nn.Parameter(torch.zeros(c_out)) if bias else None
 
-    def _conv(self, features: Tensor, table: Tensor) -> Tensor:
-        out = gather_gemm(features, table, self.weight)
+    def _conv(self, features: Tensor, table: Tensor, pairs: tuple | None = None) -> Tensor:
+        out = gather_gemm(features, table, self.weight, pairs)
         return out if self.bias is None else out + self.bias
 
 
@@ -290,7 +305,8 @@ class SubMConv3d(_SparseConvBase):
         super().__init__(c_in, c_out, kernel, bias)
 
     def forward(self, x: SparseTensor) -> SparseTensor:
-        return x.with_features(self._conv(x.features, subm_table(x, self.kernel)))
+        pairs = subm_pairs(x, self.kernel) if training_form() else None
+        return x.with_features(self._conv(x.features, subm_table(x, self.kernel), pairs))
 
 
 class SparseConv3d(_SparseConvBase):

@@ -27,13 +27,15 @@ from simulator.frame import FrameJob, instance_run, make_frame, row_columns
 from simulator.labels import LabelConfig
 from simulator.lidar import LidarSpec, carla_spec
 from simulator.road import RoadConfig
+from simulator.bounds import check_probes
 from simulator.scenario import SotifConfig, TrainConfig, instance_steps
 from simulator.space import SWEEP_WEATHER, ScenarioSpace, check_space, instances, val_instances
 from simulator.toolkit_views import write_views
 from simulator.weather import DRY_PRESETS, WEATHER_PRESETS
 
 GENERATOR_VERSION = "1.5"  # bump whenever the same seed gives other bytes
-PRESETS = ("sotif", "train", "sweep")
+PRESETS = ("sotif", "train", "sweep", "bounds")
+INSTANCE_PRESETS = ("sweep", "bounds")  # a set of instances under weathers of their own (weather "Sweep")
 LIDAR_MODELS = ("physics", "carla")
 SOTIF_FRAMES, SOTIF_VAL = 547, 55
 TRAIN_FRAMES, TRAIN_VAL_SHARE = 400, 0.15
@@ -61,14 +63,25 @@ class GenerateConfig:
         d = json.loads(json.dumps(asdict(self)))
         if d["space"] is None:
             del d["space"]
+        elif not d["space"]["probes"]:  # the bytes of sets made before bounds sets existed
+            del d["space"]["probes"]
         return d
 
     def digest(self) -> str:
         return hashlib.sha256(json.dumps(self.as_dict(), sort_keys=True).encode()).hexdigest()
 
 
-def _check_instances(preset, instances, frames, weathers, val_share: float | None = None) -> ScenarioSpace | None:
+def _check_instances(preset, instances, frames, weathers, val_share: float | None = None,
+                     probes=None) -> ScenarioSpace | None:
     """The instance mode's space (None: the study's protocol or training scenes); ValueError naming a bad input."""
+    if (preset == "bounds") != (probes is not None):
+        raise ValueError("probes go with the bounds preset, and the bounds preset needs probes")
+    if preset == "bounds":
+        if frames is not None or weathers is not None or instances != 1:
+            raise ValueError("a bounds set takes neither frames, weathers nor instances: one instance per probe")
+        probes = check_probes(probes)
+        # every frame test; no lead-in: the verdict reads the frames from the lane change on
+        return ScenarioSpace(len(probes), sweep=True, probes=probes, val_share=0.0, lead_in_frames=0)
     if not isinstance(instances, (int, np.integer)) or isinstance(instances, bool) or instances < 1:
         raise ValueError(f"instances must be an integer >= 1, got {instances!r}")
     if preset == "train" and instances != 1:
@@ -91,7 +104,7 @@ def _check_instances(preset, instances, frames, weathers, val_share: float | Non
 def _check_args(preset, frames, weathers, workers, lidar_model) -> tuple[str, ...]:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; valid: {', '.join(PRESETS)}")
-    if preset == "sweep":
+    if preset in INSTANCE_PRESETS:
         weathers = [SWEEP_WEATHER]
     if lidar_model not in LIDAR_MODELS:
         raise ValueError(f"unknown lidar model {lidar_model!r}; valid: {', '.join(LIDAR_MODELS)}")
@@ -105,7 +118,7 @@ def _check_args(preset, frames, weathers, workers, lidar_model) -> tuple[str, ..
         weathers = list(WEATHER_PRESETS) if preset == "sotif" else list(DRY_PRESETS)
     if len(weathers) == 0:
         raise ValueError("weathers must name at least one preset")
-    bad = [w for w in weathers if w not in WEATHER_PRESETS and preset != "sweep"]
+    bad = [w for w in weathers if w not in WEATHER_PRESETS and preset not in INSTANCE_PRESETS]
     if bad:
         raise ValueError(f"unknown weather preset(s) {', '.join(map(repr, bad))}; valid: {', '.join(WEATHER_PRESETS)}")
     if len(set(weathers)) != len(weathers):
@@ -137,7 +150,7 @@ def plan_instance_jobs(cfg: GenerateConfig) -> list[FrameJob]:
     for i, inst in enumerate(instances(sp, cfg.seed)):
         run = instance_run(cfg, i)
         per_instance.append((instance_steps(run, inst.sotif_config(cfg.sotif), sp.lead_in_frames, sp.window_slack_s,
-                                            sp.window_10hz_max_s, sp.window_max_s), len(run)))
+                                            sp.window_max_s), len(run)))
     specs = [(w, i, k, win, per_instance[i][1]) for w in cfg.weathers for i in range(sp.instances)
              for k, win in per_instance[i][0]]
     return [FrameJob(n, f"{n:06d}", w, k, "val" if i in val else "test", length, i, win)
@@ -337,7 +350,7 @@ def worker_init() -> None:
 def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathers: list[str] | None = None,
              seed: int = 0, workers: int = 1, lidar_model: str = "physics", progress: bool = True,
              lidar_spec: LidarSpec | None = None, force: bool = False, instances: int = 1,
-             val_share: float | None = None) -> Path:
+             val_share: float | None = None, probes=None) -> Path:
     """Write the data set to `out` and return `out`. ValueError on invalid arguments.
 
     A partial data set of the same configuration in `out` is resumed, a whole one kept; anything
@@ -354,10 +367,12 @@ def generate(out: Path, preset: str = "sotif", frames: int | None = None, weathe
     `val_share` (instance mode): the share of each weather's instances in the val split (default
     ScenarioSpace.val_share; 0: every instance is test, as `run` makes them: its own val set picks the
     operating thresholds).
+    `probes` (preset "bounds" only): the ``simulator.bounds.Probe`` instances of a controlled sweep, one
+    instance each, every frame test.
     """
     asked_weathers = weathers
     weathers = _check_args(preset, frames, weathers, workers, lidar_model)
-    space = _check_instances(preset, instances, frames, asked_weathers, val_share)
+    space = _check_instances(preset, instances, frames, asked_weathers, val_share, probes)
     if space is not None:
         frames = 0  # each instance records its own frames
     elif frames is None:

@@ -7,7 +7,8 @@ the vehicle is hidden or beyond the labelling distance). Training scenes have ne
 Worlds, their Embree scenes and the SOTIF trajectories are cached per process. Random
 streams are seeded per frame: the LiDAR's from (seed, scenario, scenario step) for SOTIF so
 that a weather-blind sensor gives the same scan in every weather (instance mode: from (seed, scenario,
-instance, step)), the rest from the frame index.
+instance, step); a bounds set's probe, LiDAR and camera: from (seed, scenario, reference scenario, noise
+seed, step)), the rest from the frame index.
 """
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ import numpy as np
 from harness.core import kitti
 from harness.core.files import atomic_write_bytes
 from simulator import fidelity
+from simulator.bounds import PROBE_COLUMNS, STREAM_TAG
 from simulator.camera import render
 from simulator.labels import frame_labels, lidar_boxes
 from simulator.lidar import Pose, scan
@@ -32,8 +34,8 @@ from simulator.weather import (WEATHER_PRESETS, WeatherPreset, precipitation_cla
                                time_of_day)
 from simulator.world import build_world
 
-SCENARIO_TAG = {"sotif": 1, "train": 2, "sweep": 3}
-WORLD_TAG = {"sotif": 11, "train": 12, "sweep": 11}  # the sweep drives on the SOTIF set's highway
+SCENARIO_TAG = {"sotif": 1, "train": 2, "sweep": 3, "bounds": 4}
+WORLD_TAG = {"sotif": 11, "train": 12, "sweep": 11, "bounds": 11}  # the sweeps drive on the SOTIF set's highway
 TRAIN_FRAMES_PER_WORLD = 100
 MIN_RUN_FRAMES = 27  # the scenario is always simulated to its end (lane change included)
 ROW_COLUMNS = ("frame_id", "split", "scenario", "weather", "time_of_day", "precipitation_class", "cloudiness",
@@ -61,8 +63,10 @@ class FrameJob:
 
 
 def row_columns(cfg) -> tuple[str, ...]:
-    """meta/frames.csv's columns: instance mode (cfg.space set) appends INSTANCE_COLUMNS."""
-    return ROW_COLUMNS + (INSTANCE_COLUMNS if cfg.space is not None else ())
+    """meta/frames.csv's columns: instance mode (cfg.space set) appends INSTANCE_COLUMNS, a bounds set also
+    ``simulator.bounds.PROBE_COLUMNS``."""
+    probes = PROBE_COLUMNS if cfg.space is not None and cfg.space.probes else ()
+    return ROW_COLUMNS + (INSTANCE_COLUMNS if cfg.space is not None else ()) + probes
 
 
 def job_instance(cfg, job: FrameJob) -> Instance:
@@ -85,6 +89,8 @@ def instance_run(cfg, index: int) -> list[FrameState]:
         inst = instances(cfg.space, cfg.seed)[index]
         sc = inst.sotif_config(cfg.sotif)
         stream = [cfg.seed, 21] if (index == 0 and not cfg.space.sweep) else [cfg.seed, 21 + 2 * cfg.space.sweep, index]
+        if cfg.space.probes:  # a reference scenario's traffic, whatever the probe
+            stream = [cfg.seed, STREAM_TAG, *cfg.space.probes[index].held_key()]
         n = run_steps(sc, cfg.space.window_max_s, cfg.space.window_slack_s)
         if len(_RUNS) >= 512:  # a run is ~100 small FrameStates
             _RUNS.pop(next(iter(_RUNS)))
@@ -142,7 +148,8 @@ def _instance_row(cfg, job: FrameJob, p: WeatherPreset) -> dict:
     axis = sweep_points(cfg.space, cfg.seed)[job.instance].axis if job.weather == SWEEP_WEATHER else "preset"
     return {"instance": job.instance, "instance_key": f"{job.weather}#{job.instance}", "sweep_axis": axis,
             "fog_mor_m": round(p.lidar_fog_mor_m, 4), "road_water": round(road_water_cover(p), 4),
-            "in_window": int(job.in_window), **job_instance(cfg, job).columns()}
+            "in_window": int(job.in_window), **job_instance(cfg, job).columns(),
+            **(cfg.space.probes[job.instance].columns() if cfg.space.probes else {})}
 
 
 def _row(cfg, job: FrameJob, state: FrameState, n_points: int, rows: np.ndarray, p: WeatherPreset) -> dict:
@@ -197,13 +204,17 @@ def make_frame(root: Path, cfg, job: FrameJob) -> tuple[dict, list[Path]]:
     weather = job_weather(cfg, job)
     scene.set_vehicles(state.vehicles)
     lidar_key = [job.step] if cfg.preset == "sotif" else [job.index]
+    camera_key = [job.index]
     if cfg.space is not None:  # the same instance's step scans alike in every weather
         lidar_key = [job.instance, job.step]
+    if cfg.space is not None and cfg.space.probes:  # a probe's streams: its reference scenario, noise seed, step
+        probe = cfg.space.probes[job.instance]
+        lidar_key = camera_key = [*probe.held_key(), probe.noise_seed, job.step]
     points = scan(scene, cfg.lidar, state.pose, weather, state.vehicles,
                   np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 1, *lidar_key]))
     calib = kitti.kitti_calib(cfg.camera.width, cfg.camera.height)
     image = render(scene, calib.lidar2img(), state.pose, cfg.lidar.mount_height, weather,
-                   np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 2, job.index]), cfg.camera)
+                   np.random.default_rng([cfg.seed, SCENARIO_TAG[cfg.preset], 2, *camera_key]), cfg.camera)
     labels, rows = frame_labels(scene, state.vehicles, state.pose, cfg.lidar.mount_height, calib, cfg.labels)
     files = [kitti.write_points(kitti.frame_path(root, "velodyne", job.frame_id), points),
              atomic_write_bytes(kitti.frame_path(root, "image_2", job.frame_id), encode_png(image)),

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from harness.core.braking import EGO_DIMS, stopping_distance
+from harness.core.braking import A_PASS_MPS2, EGO_DIMS, T_REACT_SYSTEM_S, stopping_distance
 from simulator.lidar import Pose
 from simulator.road import RoadConfig, lane_center, road_to_world
 from simulator.vehicles import Vehicle, sample_body, sample_dims, sample_paint
@@ -129,31 +129,30 @@ def _sotif_frame(road, sc, t, s_e, v_e, fast: tuple, slow: tuple, bg) -> FrameSt
     return FrameState(pose, v_e, vs, t, info)
 
 
-def window_length_s(gap_m: float, closing_mps: float) -> float:
+def window_length_s(gap_m: float, closing_mps: float, t_react: float = T_REACT_SYSTEM_S,
+                    decel: float = A_PASS_MPS2) -> float:
     """Seconds from the lane change until a gap of gap_m (m), closing at closing_mps (held), is down to the
-    stopping distance: the latest moment the ego can still start to brake. 0 when it already is; inf when
-    the ego does not close in."""
+    stopping distance with reaction time t_react and deceleration decel: the latest moment the obstacle can be
+    confirmed and still pass (by default the verdict's most lenient criterion, an automated system's reaction
+    and 6 m/s^2). 0 when it already is; inf when the ego does not close in."""
     if closing_mps <= 0:
         return math.inf
-    return max(gap_m - stopping_distance(closing_mps), 0.0) / closing_mps
+    return max(gap_m - stopping_distance(closing_mps, t_react, decel), 0.0) / closing_mps
 
 
-def instance_steps(states: list[FrameState], sc: SotifConfig, lead_in: int, slack_s: float, hz10_max_s: float,
+def instance_steps(states: list[FrameState], sc: SotifConfig, lead_in: int, slack_s: float,
                    window_max_s: float) -> list[tuple[int, bool]]:
-    """(step, in the 10 Hz window) of the frames an instance records, from its run at every step (states[k] at
-    step k): ``lead_in`` frames at 2 Hz before the lane change; every step from the lane change on for the
-    decision window (window_length_s of the gap, front bumper to rear face, and the closing speed at the lane
-    change) plus ``slack_s``, for at most ``hz10_max_s``; then every ``sc.record_every``-th step up to the
-    window's end plus slack, at most ``window_max_s`` after the lane change."""
+    """(step, in the decision window) of the frames an instance records, from its run at every step (states[k] at
+    step k): ``lead_in`` frames every ``sc.record_every``-th step before the lane change; then every step (the
+    LiDAR's 10 Hz) from the lane change through the decision window (window_length_s of the gap, front bumper to
+    rear face, and the closing speed at the lane change) plus ``slack_s``, at most ``window_max_s``."""
     step_lc = int(round(states[0].info["lane_change_time_s"] / sc.dt))
     st = states[step_lc]
     gap = st.info["slow_car_distance_m"] - (sc.slow_body[1][0] + EGO_DIMS[0]) / 2
     end_s = min(window_length_s(gap, st.ego_speed - sc.slow_speed) + slack_s, window_max_s)
     last = step_lc + int(round(end_s / sc.dt))
-    last_10hz = step_lc + int(round(min(end_s, hz10_max_s) / sc.dt))
     lead = [(step_lc - k * sc.record_every, False) for k in range(lead_in, 0, -1) if step_lc >= k * sc.record_every]
-    tail = [(k, False) for k in range(last_10hz + sc.record_every, last + 1, sc.record_every)]
-    return lead + [(k, True) for k in range(step_lc, last_10hz + 1)] + tail
+    return lead + [(k, True) for k in range(step_lc, last + 1)]
 
 
 def run_steps(sc: SotifConfig, window_max_s: float, slack_s: float) -> int:

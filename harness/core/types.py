@@ -10,7 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-CLASSES = ("Car",)  # the benchmarked class; Van is "ignored" and DontCare is "don't care" as in KITTI
+CLASSES = ("Car",)  # the benchmarked class; Van is "ignored" and DontCare is "don't care" as in KITTI (training
+# ignores Truck too: models.single_stage.IGNORED_CLASSES)
 
 
 @dataclass

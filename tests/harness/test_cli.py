@@ -156,7 +156,7 @@ def test_every_command_says_what_it_does_with_an_example_and_the_valid_names(cap
     from models.zoo import MODEL_NAMES
     from simulator.weather import WEATHER_PRESETS
     commands = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices
-    assert set(commands) == {"simulate", "train", "export", "predict", "evaluate", "run", "report", "import"}
+    assert set(commands) == {"simulate", "train", "export", "predict", "evaluate", "run", "report", "import", "verdict"}
     for name in commands:
         text = _help([name], capsys)
         usage, description = text.split("\n\n")[:2]

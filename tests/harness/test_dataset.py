@@ -44,3 +44,20 @@ def test_training_labels_are_checked_as_evaluate_checks_them(tmp_path):
     assert len(ds[0].gt_boxes) == 3
     with pytest.raises(kitti.KittiError, match=r"000001\.txt:1: box sizes \(h w l\) must be > 0, got [\d.]+ [\d.]+ -3\.9"):
         ds[1]
+
+
+def test_a_kept_dataset_reads_each_frame_once_within_its_budget(tmp_path, monkeypatch):
+    from harness import dataset
+    root = write_synthetic_dataset(tmp_path / "d", frames=3)
+    plain, kept = KittiDataset(root), KittiDataset(root, keep=True)
+    first = kept[1]
+    for a, b in zip((plain[1].points, plain[1].gt_boxes, plain[1].gt_names), (first.points, first.gt_boxes, first.gt_names)):
+        np.testing.assert_array_equal(a, b)
+    kitti.frame_path(root, "velodyne", "000001").unlink()  # a kept frame is not read again
+    assert kept[1] is first
+    monkeypatch.setattr(dataset, "KEEP_BYTES", 0)  # over the budget: read every time
+    small = KittiDataset(root, keep=True)
+    small[0]
+    kitti.frame_path(root, "velodyne", "000000").unlink()
+    with pytest.raises(kitti.KittiError):
+        small[0]

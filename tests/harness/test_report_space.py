@@ -6,25 +6,36 @@ import pytest
 
 from harness import report, report_space
 from harness.core.files import atomic_write_text
-from harness.run_space import latency_s, space_summary
+from harness.run_space import latency_ms, space_summary
 from tests.harness.test_report import make_run
 
 
 def synthetic_view(rng, n=12):
-    """A scenario-space view as ``instance_view`` writes it: n instances, 5 slow-car frames each."""
+    """A scenario-space verdict as ``harness.verdict.verdict`` writes it: n instances (every 4th a van), their
+    perception and system rows, 5 frames each."""
     rain = rng.uniform(0, 80, n)
     margin = 30.0 - rain  # wetter, later: fails above 30 mm/h
-    instances = [{"instance_key": f"Sweep#{i}", "weather": "Sweep", "instance": i, "sweep_axis": "rain",
-                  "rain_rate_mmh": float(rain[i]), "fog_mor_m": 0.0, "sc_slow_reflectance": 0.05 + 0.05 * (i % 6),
-                  "precipitation_class": "rain" if rain[i] > 1 else "dry", "n_frames": 5, "detected": True,
-                  "confirmed": i % 4 != 3, "margin_m": float(margin[i]) if i % 4 != 3 else None,
-                  "pass": bool(margin[i] >= 0 and i % 4 != 3)} for i in range(n)]
-    keys = np.repeat([r["instance_key"] for r in instances], 5)
-    frames = {"instance_key": keys.tolist(), "distance_m": rng.uniform(20, 80, 5 * n).tolist(),
+    rows = []
+    for i in range(n):
+        body = "van" if i % 4 == 3 else "sedan"
+        base = {"instance": f"Sweep#{i}", "weather": "Sweep", "sweep_axis": "rain", "rain_mm_h": float(rain[i]),
+                "fog_mor_m": 0.0, "water": 0.0, "reflectance": 0.05 + 0.05 * (i % 6), "paint": "silver",
+                "body": body, "body_class": "car" if body == "sedan" else "outside the learned classes",
+                "precipitation_class": "rain" if rain[i] > 1 else "dry", "n_frames": 5,
+                "preventable": i % 6 != 5, "reason": None if i % 6 != 5 else "occlusion", "reference_confirm_s": 0.4}
+        for kind, late in (("perception", 0.0), ("system", 10.0)):
+            m = float(margin[i] - late)
+            rows.append({**base, "verdict": kind, "model": "x", "confirm_s": 0.6, "delay_s": 0.2, "margin_m": m,
+                         "a_req_mps2": 3.0 if m >= 0 else 7.0, "passed": bool(m >= 0)})
+    keys = np.repeat([f"Sweep#{i}" for i in range(n)], 5)
+    frames = {"instance": keys.tolist(), "distance_m": rng.uniform(20, 80, 5 * n).tolist(),
               "hit": (rng.uniform(size=5 * n) < 0.6).tolist(),
               "rain_rate_mmh": np.repeat(rain, 5).tolist(), "fog_mor_m": [0.0] * (5 * n),
-              "sc_slow_reflectance": np.repeat([r["sc_slow_reflectance"] for r in instances], 5).tolist()}
-    return {"rule": {"k": 3, "n": 5, "latency_s": 0.04, "threshold": 0.5}, "instances": instances, "frames": frames}
+              "sc_slow_reflectance": np.repeat([0.05 + 0.05 * (i % 6) for i in range(n)], 5).tolist()}
+    phantoms = [{"weather": "Sweep: rain", "n_frames": 5 * n, "hours": 5 * n * 0.1 / 3600, "n_false": 3,
+                 "false_per_h": 3 / (5 * n * 0.1 / 3600), "n_events": 0, "events_per_h": 0.0}]
+    return {"rule": {"k": 3, "window_s": 0.5, "reaction_s": 0.35}, "threshold": 0.5, "instances": rows,
+            "phantoms": phantoms, "frames": frames}
 
 
 @pytest.fixture(scope="module")
@@ -40,15 +51,18 @@ def space_run(tmp_path_factory):
     return root, doc
 
 
-def test_latency_in_seconds():
-    assert latency_s({"onnxruntime": {"latency_ms_p50": 40.0}}) == 0.04 and latency_s({}) == 0.0
+def test_latency_is_the_p90_in_ms():
+    assert latency_ms({"onnxruntime": {"latency_ms_p50": 40.0, "latency_ms_p90": 55.0}}) == 55.0
+    assert latency_ms({}) is None
 
 
 def test_space_summary_of_a_data_set_without_instances(space_run):
     _, doc = space_run
     view = doc["models"]["alpha"]["sotif_space"]["sotif"]
-    assert [r["instance_key"] for r in view["instances"]] == ["ClearNoon", "ClearSunset", "HardRainNight"]
-    assert view["rule"]["latency_s"] == pytest.approx(0.04)
+    rows = pd.DataFrame(view["instances"])
+    assert list(dict.fromkeys(rows["instance"])) == ["ClearNoon", "ClearSunset", "HardRainNight"]
+    assert set(rows["verdict"]) == {"perception", "system"} and (rows.loc[rows.verdict == "system", "latency_ms"] == 50.0).all()
+    assert set(rows["body"]) == {"sedan"} and view["rule"]["reaction_s"] == 0.35
     cal = doc["models"]["alpha"]["calibration"]
     assert set(cal["0.7"]) == {"all", "dry", "rain"} and cal["0.7"]["all"]["n"] == 27  # 3 boxes x 9 test frames
 
@@ -56,28 +70,35 @@ def test_space_summary_of_a_data_set_without_instances(space_run):
 def test_tables_and_section(space_run):
     root, doc = space_run
     rates = pd.read_csv(root / "tables" / "sotif_pass_rates.csv")
-    sweep = rates[(rates.model == "alpha") & (rates.set == "sweep")]
-    inst = pd.DataFrame(doc["models"]["alpha"]["sotif_space"]["sweep"]["instances"])
-    row = sweep[sweep.column == "weather"].iloc[0]
-    assert row["n"] == 12 and row["n_pass"] == inst["pass"].sum() and not row["too_few"]
-    assert (sweep[sweep.column == "rain_rate_mmh"]["n"] == 6).all()  # 12 values: two bins of >= 5 instances
+    sweep = rates[(rates.model == "alpha") & (rates.set == "sweep") & (rates.verdict == "perception")]
+    inst = pd.DataFrame(doc["models"]["alpha"]["sotif_space"]["sweep"]["instances"]).query("verdict == 'perception'")
+    car = inst[inst.body_class == "car"]
+    row = sweep[(sweep.column == "all") & (sweep.body_class == "car")].iloc[0]
+    assert row["n"] == car["preventable"].sum() == 8 and row["n_pass"] == (car["passed"] & car["preventable"]).sum()
+    assert row["n_unpreventable"] == 1 and not row["too_few"]  # instance 5 (occlusion); 11 is a van
+    vans = sweep[(sweep.column == "all") & (sweep.body_class == "outside the learned classes")].iloc[0]
+    assert (vans["n"], vans["n_unpreventable"]) == (2, 1)  # instances 3, 7 and 11 (unpreventable)
     trig = pd.read_csv(root / "tables" / "triggering_conditions.csv")
-    assert len(trig[trig.model == "alpha"]) == report_space.N_TRIGGERING and "weather" not in set(trig["column"])
-    judged = trig[(trig.model == "alpha") & ~trig.too_few]
-    assert judged["rate"].is_monotonic_increasing
+    alpha = trig[trig.model == "alpha"]
+    assert len(alpha) == report_space.N_TRIGGERING and not {"weather", "all"} & set(alpha["column"])
+    assert alpha[~alpha.too_few]["rate"].is_monotonic_increasing
     boundary = pd.read_csv(root / "tables" / "sotif_boundary.csv")
     rain = boundary[(boundary.model == "alpha") & (boundary["map"] == "rain")]
     frames = pd.concat([pd.DataFrame(doc["models"]["alpha"]["sotif_space"][k]["frames"]) for k in ("sotif", "sweep")])
-    assert rain["n"].sum() == frames["rain_rate_mmh"].notna().sum() >= 60  # every slow-car frame with a rain rate
+    assert rain["n"].sum() == frames["rain_rate_mmh"].notna().sum() >= 60  # every judged frame with a rain rate
     assert rain.loc[rain.n == 0, "p_detect"].isna().all()
-    for name in ("sotif_instances", "calibration"):
+    for name in ("sotif_instances", "sotif_phantoms", "calibration"):
         assert (root / "tables" / f"{name}.csv").is_file()
+    table = pd.read_csv(root / "tables" / "sotif_instances.csv")
+    assert {"preventable", "reason", "delay_s", "a_req_mps2", "verdict"} <= set(table.columns)
     md = (root / "report.md").read_text()
-    assert "## SOTIF over the scenario space" in md and "holding 3 hits" in md and "Wilson" in md
+    assert "## SOTIF over the scenario space" in md and "in-path hit" in md and "Wilson" in md
     assert "sweep: 12 instances" in md and "bootstrap over frames" in md
     lead = md.index("## Where each detector stops finding the slow car in time")
+    head = md[lead:md.index("## Models at a glance")]
     assert lead < md.index("## Models at a glance") < md.index("## SOTIF over the scenario space")
-    assert "| sweep | all instances |" in md[lead:md.index("## Models at a glance")]
+    assert "| sweep | car-bodied: all |" in head and "vans and trucks (outside the learned classes)" in head
+    assert "system verdict" in head and "phantom in-path boxes per hour" in head
     matrix = report_space.rate_matrix(rates)
     assert matrix.columns.name is None and list(matrix.columns[:2]) == ["set", "condition"]
     for fig in ("sotif_margins", "boundary_alpha", "boundary_beta", "reliability"):

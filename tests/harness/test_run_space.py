@@ -69,10 +69,10 @@ def test_a_run_with_instances_and_a_sweep_set(tmp_path):
     summary = json.loads((out / "results.json").read_text())
     model = summary["models"]["pointpillars"]
     assert set(model["sotif_space"]) == {"sotif", "sweep"} and set(model["calibration"]) == {"0.7", "0.5"}
-    assert len({r["instance_key"] for r in model["sotif_space"]["sweep"]["instances"]}) >= 2
+    assert len({r["instance"] for r in model["sotif_space"]["sweep"]["instances"]}) >= 2
     res = json.loads((out / "results" / "pointpillars.sweep.json").read_text())
     assert "sweep_axis" in res["groups_by"]
-    for name in ("sotif_instances", "sotif_pass_rates", "triggering_conditions", "calibration"):
+    for name in ("sotif_instances", "sotif_pass_rates", "sotif_phantoms", "triggering_conditions", "calibration"):
         assert (out / "tables" / f"{name}.csv").is_file()
     assert "SOTIF over the scenario space" in (out / "report.md").read_text()
 
@@ -85,12 +85,13 @@ def test_the_model_summary_carries_the_scenario_space(tmp_path, monkeypatch):
     centroid_detector(root / "models" / "alpha.onnx")
     monkeypatch.setattr(run_mod, "_checkpoint_meta", lambda ckpt: {k: None for k in (
         "params", "epochs", "final_loss", "val_ap", "val_history", "train_seconds")})
-    probe = {"onnxruntime": {"latency_ms_p50": 120.0}, "seconds": 1.0}
+    probe = {"onnxruntime": {"latency_ms_p50": 120.0, "latency_ms_p90": 150.0}, "seconds": 1.0}
     summary = run_mod._model_summary(TINY, root, "alpha", {"seconds": 2.0}, {"latency_ms_p50": 99.0}, probe)
     view = summary["sotif_space"]["sotif"]
-    assert view["rule"]["latency_s"] == pytest.approx(0.12)  # the probe's latency, not the prediction stage's
-    assert view["rule"]["threshold"] == summary["sotif"]["ClearNoon"]["threshold"]
-    assert [r["instance_key"] for r in view["instances"]] == list(summary["sotif"])
+    system = [r for r in view["instances"] if r["verdict"] == "system"]
+    assert {r["latency_ms"] for r in system} == {150.0}  # the probe's p90, not the prediction stage's
+    assert view["threshold"] == summary["sotif"]["ClearNoon"]["threshold"]
+    assert [r["instance"] for r in system] == list(summary["sotif"])
     assert "sweep" not in summary["sotif_space"] and set(summary["calibration"]) == {"0.7", "0.5"}
 
 

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import torch
 
-from harness.core.boxes import iou_bev
+from harness.core.boxes import bev_intersection, iou_bev
 from models.anchor_head import AnchorHead, HeadConfig, assign_targets, make_anchors
 
 RANGE = (0.0, -8.0, -3.0, 16.0, 8.0, 1.0)
@@ -49,13 +49,26 @@ def test_assign_targets_matches_numpy_rules():
     ignore = np.array([[3.0, -5.0, -1.0, 5.0, 2.0, 2.0, 0.0]], np.float32)
     labels, matched = assign_targets(anchors, torch.from_numpy(gt), torch.from_numpy(ignore), CFG)
     iou = iou_bev(anchors.numpy(), gt)
-    ign = iou_bev(anchors.numpy(), ignore).max(1) >= CFG.neg_iou
+    a = anchors.numpy()
+    ign = (bev_intersection(a, ignore) / (a[:, 3] * a[:, 4])[:, None]).max(1) >= CFG.neg_iou  # share inside
     ref = np.where(iou.max(1) >= CFG.pos_iou, 1, np.where(iou.max(1) >= CFG.neg_iou, -1, 0))
     ref[ign & (ref == 0)] = -1
     ref[((iou >= iou.max(0) - 1e-5) & (iou > 0)).any(1)] = 1  # each gt's best anchors (float32 ties)
     np.testing.assert_array_equal(labels.numpy(), ref)
     pos = ref == 1
     np.testing.assert_array_equal(matched.numpy()[pos], iou.argmax(1)[pos])
+
+
+def test_anchors_on_a_truck_are_ignored():
+    """Car-sized anchors on an ignored truck (IoU <= 0.3 with it) are ignored, not negatives."""
+    anchors = make_anchors(RANGE, (8, 16), CFG)
+    truck = torch.tensor([[8.0, 0.0, -1.0, 11.5, 2.55, 3.8, 0.0]])
+    labels, _ = assign_targets(anchors, torch.zeros(0, 7), truck, CFG)
+    a = anchors.numpy()
+    inside = (np.abs(a[:, 0] - 8.0) <= 3.5) & (np.abs(a[:, 1]) <= 1.0) & (np.abs(np.sin(a[:, 6])) < 1e-6)  # 2/3 or more on it
+    assert inside.sum() > 0 and (labels.numpy()[inside] == -1).all()
+    assert iou_bev(a[inside], truck.numpy()).max() < 0.3
+    assert (labels.numpy()[np.abs(a[:, 1]) > 4] == 0).all()  # far from it: negatives
 
 
 def test_head_loss_decreases_and_detect_runs():

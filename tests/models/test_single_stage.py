@@ -93,3 +93,17 @@ def test_integer_intermediates_fit_int32(exported):
 def _rows(boxes):
     """Boxes in lexicographic order: equal scores may come out in either order."""
     return boxes[np.lexsort(np.round(boxes, 2).T[::-1])]
+
+
+def test_van_and_truck_are_ignored_not_background():
+    """The Car targets: Car boxes are the positives; Van, Truck and DontCare boxes are regions ignored (neither
+    car nor background); any other class is background."""
+    from harness.core.types import Sample
+    from models.single_stage import frame_targets
+    boxes = np.array([[10.0 * (i + 1), 0, -0.9, 4.5, 1.9, 1.5, 0.0] for i in range(5)], np.float32)
+    sample = Sample("000000", np.zeros((3, 4), np.float32), boxes,
+                    np.array(["Car", "Van", "Truck", "DontCare", "Pedestrian"]))
+    points, cars, ignore = frame_targets(sample, "cpu")
+    assert points.shape == (3, 4)
+    assert cars[:, 0].tolist() == [10.0]
+    assert ignore[:, 0].tolist() == [20.0, 30.0, 40.0]

@@ -124,3 +124,29 @@ def test_height_compress_stacks_channels_per_height():
     for (z, yy, xx), f in zip(x.coords.tolist(), x.features):
         torch.testing.assert_close(bev[0, torch.arange(3) * SHAPE[0] + z, yy, xx], f)
     assert int((bev != 0).sum()) == int((x.features != 0).sum())
+
+
+def test_submanifold_convs_of_one_resolution_share_their_pairs(monkeypatch):
+    """The stem's two SubM convs build the pairs of their table once, and compute what they
+    computed with the pairs built for each conv: the same bits, forward and backward."""
+    import models.sparse as sparse
+    rng = np.random.default_rng(6)
+    coords = torch.from_numpy(np.unique(rng.integers(0, 12, (300, 3)), axis=0))
+    feats = torch.randn(coords.shape[0], 4, requires_grad=True)
+    torch.manual_seed(0)
+    convs = torch.nn.Sequential(SubMConv3d(4, 8), torch.nn.Identity())
+    second = SubMConv3d(8, 8)
+
+    def run():
+        x = SparseTensor(feats, coords, (12, 12, 12))
+        out = second(convs[0](x)).features
+        return out, torch.autograd.grad(out.square().sum(), (feats, second.weight))
+
+    built = []
+    real = sparse.table_pairs
+    monkeypatch.setattr(sparse, "table_pairs", lambda t, v: built.append(v) or real(t, v))
+    shared = run()
+    assert len(built) == 1
+    monkeypatch.setattr(sparse, "subm_pairs", lambda x, k: real(sparse.subm_table(x, k), x.coords.shape[0]))
+    fresh = run()
+    assert torch.equal(shared[0], fresh[0]) and all(torch.equal(a, b) for a, b in zip(shared[1], fresh[1]))

@@ -27,8 +27,8 @@ def test_the_scenario_and_the_verdict_brake_by_the_floors_rule():
         assert getattr(harness.sotif, name) is getattr(braking, name)
     assert scenario.stopping_distance is braking.stopping_distance
     assert stopping_distance(10.0) == pytest.approx(10.0 * 1.0 + 100.0 / 8.0 + 2.0)  # 24.5 m
-    assert window_length_s(50.0, 10.0) == pytest.approx((50.0 - 24.5) / 10.0)
-    assert window_length_s(20.0, 10.0) == 0.0 and window_length_s(20.0, 0.0) == math.inf
+    assert window_length_s(50.0, 10.0, t_react=1.0, decel=4.0) == pytest.approx((50.0 - 24.5) / 10.0)
+    assert window_length_s(20.0, 10.0, t_react=1.0, decel=4.0) == 0.0 and window_length_s(20.0, 0.0) == math.inf
 
 
 def test_design_is_deterministic_per_seed_and_differs_across_seeds():
@@ -78,16 +78,27 @@ def test_a_perfect_detector_can_pass_most_instances():
 
 
 def test_instance_steps_window_is_at_10_hz():
+    """Every step (10 Hz) from the lane change to the latest passing confirmation plus slack, capped."""
     sc = SotifConfig()
     run = sotif_run(ROAD, 100, np.random.default_rng(0), SotifConfig(record_every=1))
-    steps = instance_steps(run, sc, lead_in=2, slack_s=0.5, hz10_max_s=2.5, window_max_s=8.0)
     k_lc = int(round(run[0].info["lane_change_time_s"] / sc.dt))
+    gap = run[k_lc].info["slow_car_distance_m"] - (sc.slow_body[1][0] + EGO_DIMS[0]) / 2
+    end_s = window_length_s(gap, run[k_lc].ego_speed - sc.slow_speed) + 0.3  # the study's: 6.9 s + slack
+    steps = instance_steps(run, sc, lead_in=2, slack_s=0.3, window_max_s=7.5)
     lead = [k for k, w in steps if k < k_lc]
     window = [k for k, w in steps if w]
     assert lead == [k_lc - 10, k_lc - 5] and window[0] == k_lc and np.all(np.diff(window) == 1)
-    assert len(window) == 26  # the study's window is longer than 2.5 s: capped
-    tail = [k for k, w in steps if not w and k > k_lc]
-    assert np.all(np.diff(tail) == 5) and tail[0] == window[-1] + 5 and (tail[-1] - k_lc) * sc.dt <= 8.0
+    assert [k for k, w in steps if not w] == lead  # no 2 Hz tail
+    assert 7.0 < end_s < 7.5 and window[-1] == k_lc + round(end_s / sc.dt)
+    capped = instance_steps(run, sc, lead_in=2, slack_s=0.3, window_max_s=2.5)
+    assert [k for k, w in capped if w][-1] == k_lc + 25
+
+
+def test_window_length_is_the_latest_passing_confirmation():
+    # 60 m gap closing at 10 m/s: stopping 10 * 0.35 + 100 / 12 + 2 = 13.83 m -> (60 - 13.83) / 10 s
+    assert window_length_s(60.0, 10.0) == pytest.approx((60.0 - 3.5 - 100.0 / 12.0 - 2.0) / 10.0)
+    assert window_length_s(60.0, 10.0, t_react=1.0, decel=4.0) == pytest.approx((60.0 - 10.0 - 12.5 - 2.0) / 10.0)
+    assert window_length_s(5.0, 10.0) == 0.0 and window_length_s(5.0, 0.0) == math.inf
 
 
 def test_val_instances_are_whole_and_never_the_study():

@@ -1,0 +1,84 @@
+"""The imported Part-A2 against golden data of OpenPCDet's own modules (``benchmarks/golden_parta2.py``:
+PartA2.yaml's network on CPU, random weights by the seeded rule in its checkpoint layout, one frame on
+one thread, CPU stand-ins for its RoI-aware pooling and rotated NMS). The checkpoint is rebuilt here
+from the rule, imported through ``sotif-bench import``'s code and run: the bird's-eye map, the RPN
+class logits, the voxels' segmentation and part scores, the 100 proposals, the RCNN outputs of the
+reference's proposals and the final Car boxes must match."""
+import collections
+import math
+
+import numpy as np
+import torch
+
+from harness.cli import main
+from models.roi_head import decode_canonical, finalize, propose, roi_support
+from tests.harness import published_layouts as layouts
+from tests.harness.test_import_weights import openpcdet_file
+from tests.models.test_published_golden import assert_same_boxes, car_boxes, imported, load
+
+TOL = dict(rtol=1e-4, atol=1e-4)
+
+
+def by_centre(xyz: torch.Tensor, want_xyz: np.ndarray) -> np.ndarray:
+    """(S,) rows of our voxel centres xyz (V, 3) at the reference's voxel centres (S, 3)."""
+    dist = torch.cdist(torch.from_numpy(want_xyz).double(), xyz.double())  # (S, V) m
+    near, rows = dist.min(dim=1)
+    assert float(near.max()) < 1e-4
+    return rows.numpy()
+
+
+def test_imported_parta2_is_openpcdet(tmp_path):
+    net, g = imported("openpcdet", "parta2", tmp_path)
+    points = torch.from_numpy(g["points"])
+    with torch.no_grad():
+        xyz, feats, seg, part, bev = net.voxel_stage(points)
+        feats2d = net.backbone2d(bev)
+        cls = net.rpn(feats2d)[0]  # (A, 3) class logits
+        rois, roi_scores, roi_labels = propose(net.rpn, feats2d, net.cfg.proposals_test)
+        want_rois = torch.from_numpy(g["rois"])
+        logit, deltas = net.rcnn(want_rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
+        rcnn_boxes = decode_canonical(deltas, want_rois, net.cfg.output.max_log_size)
+        # the rest of PartA2.second_stage, on our proposals
+        ours = net.rcnn(rois, xyz, feats, torch.sigmoid(seg), torch.sigmoid(part))
+        boxes, scores, _ = finalize(rois, roi_scores, *ours, net.cfg.output, roi_support(xyz, rois), roi_labels,
+                                    net.reported)
+    assert xyz.shape[0] == int(g["num_voxels"])
+    np.testing.assert_allclose(bev[0].numpy()[tuple(g["bev_index"].T)], g["bev_value"], **TOL)
+    np.testing.assert_allclose(cls.numpy()[tuple(g["cls_index"].T)], g["cls_value"], **TOL)
+    rows = by_centre(xyz, g["seg_xyz"])
+    np.testing.assert_allclose(torch.sigmoid(seg).numpy()[rows], g["seg_value"], **TOL)
+    rows = by_centre(xyz, g["part_xyz"])
+    np.testing.assert_allclose(torch.sigmoid(part).numpy()[rows, g["part_index"][:, 1]], g["part_value"], **TOL)
+    # proposals: OpenPCDet keeps the RPN's logit as the RoI score
+    want_scores = torch.sigmoid(torch.from_numpy(g["roi_scores"])).numpy()
+    assert_same_boxes(rois.numpy(), roi_scores.numpy(), g["rois"], want_scores)
+    order, want_order = np.argsort(-roi_scores.numpy(), kind="stable"), np.argsort(-want_scores, kind="stable")
+    np.testing.assert_array_equal(roi_labels.numpy()[order], g["roi_labels"][want_order])
+    # the RCNN on the reference's proposals
+    np.testing.assert_allclose(logit.numpy(), g["rcnn_cls"], **TOL)
+    got, want = rcnn_boxes.numpy(), g["rcnn_boxes"]  # (K, 7) each, the reference's RoI order
+    turn = np.remainder(got[:, 6] - want[:, 6] + math.pi, 2 * math.pi) - math.pi
+    np.testing.assert_allclose(got[:, :6], want[:, :6], rtol=0, atol=1e-3)
+    assert np.abs(turn).max() <= 1e-3
+    want_boxes, want_final = car_boxes(g)
+    assert len(want_boxes) > 0
+    assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_final)
+
+
+def test_another_network_exits_2_naming_the_mismatch(tmp_path, capsys):
+    """SECOND's file, and Part-A2's with a per-class point head (CLASS_AGNOSTIC False), are refused."""
+    g = load("openpcdet", "parta2")
+    second = collections.OrderedDict((n, torch.zeros(s)) for n, s in layouts.openpcdet_second(True).items())
+    shapes = dict(zip((str(n) for n in g["names"]), g["shapes"]))
+    per_class = collections.OrderedDict((n, torch.zeros(s)) for n, s in shapes.items())
+    per_class["point_head.cls_layers.0.weight"] = torch.zeros(3, 16)
+    per_class["point_head.cls_layers.0.bias"] = torch.zeros(3)
+    cases = (("second", second, "tensors of ours no reference tensor fills (170): part_head.0.bias"),
+             ("per_class", per_class, "point_head.cls_layers.0.weight (3, 16) for seg_head.0.weight (1, 16)"))
+    for name, state, want in cases:
+        openpcdet_file(tmp_path / f"{name}.pth", state)
+        assert main(["import", "--from", "openpcdet", "--model", "parta2", "--checkpoint",
+                     str(tmp_path / f"{name}.pth"), "--out", str(tmp_path / "o.pt")]) == 2
+        err = capsys.readouterr().err
+        assert "does not hold the network of OpenPCDet tools/cfgs/kitti_models/PartA2.yaml" in err and want in err, err
+        assert not (tmp_path / "o.pt").exists()
