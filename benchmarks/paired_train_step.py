@@ -28,8 +28,8 @@ HERE = Path(__file__).resolve().parent
 
 
 def schedule_steps(name: str) -> int:
-    from harness.train import train_config
-    tcfg = train_config(name, "compact")
+    from models.zoo import resolve
+    tcfg = resolve(name, "compact").schedule
     return tcfg.epochs * math.ceil(DEFAULT_TRAIN_FRAMES / tcfg.batch_size)
 
 

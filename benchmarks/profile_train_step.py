@@ -35,7 +35,7 @@ from harness.augment import AugmentConfig, augment
 from harness.dataset import KittiDataset
 from harness.gt_database import load_or_build
 from harness.malloc import keep_freed_memory
-from harness.train import train_config, uses_gt_sampling
+from harness.train import uses_gt_sampling
 from models import zoo
 
 GEMM = "GEMM/conv"
@@ -165,7 +165,7 @@ class Stepper:
         self.aug = AugmentConfig()
         self.database = (load_or_build(data, data / "gt_database", self.aug.gt_sampling)
                          if uses_gt_sampling(self.net, self.aug) else None)
-        self.tcfg = train_config(name, "compact")
+        self.tcfg = zoo.resolve(name, "compact").schedule
         self.optimizer = torch.optim.AdamW(self.net.parameters(), lr=1e-4, weight_decay=self.tcfg.weight_decay)
         self.order = np.random.default_rng([0, 0]).permutation(len(self.ds))
 

@@ -131,9 +131,10 @@ def cmd_simulate(a) -> int:
 
 def cmd_train(a) -> int:
     from harness.train import default_workers, train
-    a.model = _model_name(a.model)
-    workers = a.workers or default_workers(a.model, a.profile, a.device)
-    ckpt = train(a.model, Path(a.data), Path(a.out), profile=a.profile, epochs=a.epochs, device=a.device,
+    from models.zoo import resolve
+    recipe = resolve(_model_name(a.model), a.profile, warm=a.init_from is not None)
+    workers = a.workers or default_workers(recipe, device=a.device)
+    ckpt = train(recipe, Path(a.data), Path(a.out), epochs=a.epochs, device=a.device,
                  seed=a.seed, progress=not a.quiet, workers=workers, force=a.force, init_from=a.init_from)
     print(f"checkpoint written to {ckpt}")
     return 0

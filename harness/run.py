@@ -35,6 +35,7 @@ from harness.model_stages import checkpoint_of, export_stage, import_export
 from harness.predict_eval import predict_evaluate
 from harness.run_boundaries import boundaries_stage
 from harness.stages import Stages, file_digest
+from models.recipe import ModelRecipe
 
 RUN_SCHEMA = "sotif-bench/run/1"
 GROUP_COLUMNS = ("weather", "time_of_day", "precipitation_class")
@@ -57,7 +58,7 @@ class RunConfig:
     bootstrap: int = 200
     lidar_model: str = "physics"
     seeds: int = 1  # training draws per model: seeds seed .. seed + seeds - 1
-    warm_start: bool = True  # two-stage and fusion models start from their one-stage sibling (WARM_FROM)
+    warm_start: bool = True  # two-stage and fusion models start from their one-stage sibling (Recipe.warm_from)
     sotif_instances: int | None = None  # scenario instances per weather of the SOTIF set; None: the study's one
     sweep_instances: int | None = None  # instances of the weather sweep set (data/sweep); None: no sweep set
     val_frames: int | None = None  # the val set's held-out training-generator frames (harness.valset); None: none
@@ -65,26 +66,29 @@ class RunConfig:
     bounds: str | None = None  # the boundary searches' plan (harness.run_boundaries.PLANS); None: none
 
 
-# With ``warm_start``, these models' trainings start from the same draw of their sibling's
-# checkpoint (``train --init-from``): the sibling trains first, and a changed sibling retrains them.
-WARM_FROM = {"pv_rcnn": "second", "parta2": "second", "mvx_net": "dv_second"}
+def model_recipes(cfg: RunConfig, names: list[str]) -> dict[str, ModelRecipe]:
+    """Each model the run trains, resolved once: its network, config and schedule in the run's model
+    profile, and with ``warm_start`` the sibling whose checkpoint starts it (the same draw's: the sibling
+    trains first, and a changed sibling retrains it)."""
+    from models.zoo import resolve
+    return {name: resolve(name, cfg.model_profile, warm=cfg.warm_start) for name in names}
 
 
-def _sibling(cfg: RunConfig, tag: str) -> str | None:
-    """The tag whose checkpoint starts ``tag``'s training (None: a cold start)."""
-    name = _model_of(tag)
-    if not cfg.warm_start or name not in WARM_FROM:
+def _sibling(recipe: ModelRecipe | None, tag: str) -> str | None:
+    """The tag whose checkpoint starts ``tag``'s training (None: a cold start or an imported model)."""
+    if recipe is None or recipe.warm_from is None:
         return None
-    return WARM_FROM[name] + tag[len(name):]  # the same draw's suffix
+    return recipe.warm_from + tag[len(recipe.model):]  # the same draw's suffix
 
 
 def with_siblings(cfg: RunConfig, run_dir: Path, names: list[str], progress: bool = True) -> list[str]:
     """``names`` and, with ``warm_start``, the siblings their trainings start from that neither ``names``
     nor ``run_dir`` (in every draw) holds (``run --models pv_rcnn`` also trains SECOND, as the default run
     does)."""
+    from models.zoo import recipe
     extra = []
     for name in names:
-        sib = _sibling(cfg, name)
+        sib = recipe(name).warm_from if cfg.warm_start else None
         held = sib and all(checkpoint_of(run_dir, draw_tag(sib, d)).is_file() for d in range(cfg.seeds))
         if sib and sib not in names + extra and not held:
             extra.append(sib)
@@ -161,25 +165,23 @@ def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> st
     return file_digest(out / "meta" / "dataset.json")
 
 
-def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, draw: int = 0) -> dict:
-    from harness.train import train, train_config
-    from models.zoo import config
-    name = _model_of(tag)
+def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, recipe: ModelRecipe, tag: str, train_hash: str,
+                  draw: int = 0) -> dict:
+    from harness.train import train
     ckpt = checkpoint_of(run_dir, tag)
     seed = cfg.seed + draw
-    sibling = _sibling(cfg, tag)
-    schedule = asdict(train_config(name, cfg.model_profile, warm=sibling is not None))
+    sibling = _sibling(recipe, tag)
     init = checkpoint_of(run_dir, sibling) if sibling else None
     warm = {"init_from": {"model": sibling, "checkpoint": file_digest(init)}} if init else {}
-    tinfo = stages.run(f"train_{tag}", {"model": name, "profile": cfg.model_profile, "epochs": cfg.epochs,
-                                         "schedule": schedule, "model_config": asdict(config(name, cfg.model_profile)),
+    tinfo = stages.run(f"train_{tag}", {"model": recipe.model, "profile": recipe.profile, "epochs": cfg.epochs,
+                                         "schedule": asdict(recipe.schedule), "model_config": asdict(recipe.config),
                                          "data": train_hash, "seed": seed, **warm},
-                       lambda: {"checkpoint": str(train(name, run_dir / "data" / "train", ckpt.parent,
-                                                        profile=cfg.model_profile, epochs=cfg.epochs,
-                                                        device=cfg.device, seed=seed, init_from=init,
-                                                        progress=stages.bars, on_epoch=stages.epoch_line(tag)))},
+                       lambda: {"checkpoint": str(train(recipe, run_dir / "data" / "train", ckpt.parent,
+                                                        epochs=cfg.epochs, device=cfg.device, seed=seed,
+                                                        init_from=init, progress=stages.bars,
+                                                        on_epoch=stages.epoch_line(tag)))},
                        outputs=[ckpt])
-    export_stage(stages, run_dir, tag, name)
+    export_stage(stages, run_dir, tag, recipe.model)
     return tinfo
 
 
@@ -250,25 +252,28 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
             **space_summary(run_dir, name, threshold, runtime)}
 
 
-def _model_job(cfg: RunConfig, run_dir: Path, tag: str, train_hash: str, sotif_hash: str, runtime: str,
-               progress: bool, threads: int | None, bars: bool, draw: int = 0,
+def _model_job(cfg: RunConfig, run_dir: Path, tag: str, recipe: ModelRecipe | None, train_hash: str, sotif_hash: str,
+               runtime: str, progress: bool, threads: int | None, bars: bool, draw: int = 0,
                sweep_hash: str | None = None) -> tuple[dict, dict]:
-    """Train, export, predict and evaluate one model's draw (in the run's process or a job process)."""
+    """Train, export, predict and evaluate one model's draw (in the run's process or a job process);
+    ``recipe``: the model's (None: an imported model's)."""
     if interrupted():  # a job process that was interrupted takes no further job from the pool's queue
         raise KeyboardInterrupt("the run was interrupted")
     stages = Stages(run_dir, progress, bars=bars, prefix=f"[{tag}] " if not bars else "")
     if published_run.source(cfg, tag):
         tinfo = import_export(stages, cfg, run_dir, tag)
     else:
-        tinfo = _train_export(stages, cfg, run_dir, tag, train_hash, draw)
+        tinfo = _train_export(stages, cfg, run_dir, recipe, tag, train_hash, draw)
     ort = _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads, sweep_hash)
     valset.predict_evaluate(stages, cfg, run_dir, tag, runtime, threads)
     return tinfo, ort
 
 
-def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: str, sotif_hash: str, runtime: str,
-                progress: bool, t0: float, sweep_hash: str | None = None) -> dict[str, tuple[dict, dict]]:
-    """``_model_job`` for every model and training draw (keyed by :func:`draw_tag`): ``cfg.jobs``
+def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], recipes: dict[str, ModelRecipe], train_hash: str,
+                sotif_hash: str, runtime: str, progress: bool, t0: float,
+                sweep_hash: str | None = None) -> dict[str, tuple[dict, dict]]:
+    """``_model_job`` for every model and training draw (keyed by :func:`draw_tag`; ``recipes``: those of
+    the trained models, :func:`model_recipes`): ``cfg.jobs``
     processes at once with ``cores // jobs`` threads each (the sparse and point-based networks gain
     little from a second thread in one step, so two models side by side finish sooner than one
     after the other), or in this process."""
@@ -276,8 +281,9 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
     draws = {draw_tag(n, d): d for d in range(cfg.seeds) for n in models if d < published_run.draws(cfg, n)}
     names = list(draws)
     waits = {}  # the sibling a job waits for: one trained in this run (an earlier run's checkpoint waits for nothing)
+    recipe_of = {n: recipes.get(_model_of(n)) for n in names}  # None: an imported model
     for n in names:
-        sib = _sibling(cfg, n)
+        sib = _sibling(recipe_of[n], n)
         if sib in draws:
             waits[n] = sib
         elif sib and not checkpoint_of(run_dir, sib).is_file():
@@ -286,7 +292,7 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
     jobs = max(1, min(cfg.jobs, len(names)))
     order = sorted(names, key=lambda n: -_SAMPLE_MINUTES.get(_model_of(n), 10)) if jobs > 1 else \
         sorted(names, key=lambda n: n in waits)  # one slot: siblings first
-    minutes = {n: _SAMPLE_MINUTES.get(_model_of(n), 10) * _work_left(cfg, run_dir, n) for n in names}
+    minutes = {n: _SAMPLE_MINUTES.get(_model_of(n), 10) * _work_left(cfg, run_dir, n, recipe_of[n]) for n in names}
     done: dict[str, tuple[dict, dict]] = {}
     starts: dict[str, float] = {}  # a job starts when a slot frees and its sibling is done
     ends: dict[str, float] = {}
@@ -306,8 +312,8 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
         for i, name in enumerate(order, 1):
             starts[name] = time.perf_counter()
             say(f"== model {i}/{len(names)}: {name} (elapsed {time.perf_counter() - t0:.0f} s)")
-            finished(name, _model_job(cfg, run_dir, name, train_hash, sotif_hash, runtime, progress, None, progress,
-                                      draws[name], sweep_hash))
+            finished(name, _model_job(cfg, run_dir, name, recipe_of[name], train_hash, sotif_hash, runtime, progress,
+                                      None, progress, draws[name], sweep_hash))
         return done
     import multiprocessing
     threads = max(1, (os.cpu_count() or 1) // jobs)
@@ -319,8 +325,8 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], train_hash: st
         def submit_ready() -> None:  # fill the free slots with jobs whose siblings are done
             while len(pending) < jobs and (name := next_ready()) is not None:
                 starts[name] = time.perf_counter()
-                pending[pool.submit(_model_job, cfg, run_dir, name, train_hash, sotif_hash, runtime, progress,
-                                    threads, False, draws[name], sweep_hash)] = name
+                pending[pool.submit(_model_job, cfg, run_dir, name, recipe_of[name], train_hash, sotif_hash, runtime,
+                                    progress, threads, False, draws[name], sweep_hash)] = name
 
         submit_ready()
         try:
@@ -360,18 +366,17 @@ def _eta_seconds(order: list[str], minutes: dict[str, float], starts: dict[str, 
     return max(free)
 
 
-def _work_left(cfg: RunConfig, run_dir: Path, name: str) -> float:
+def _work_left(cfg: RunConfig, run_dir: Path, name: str, recipe: ModelRecipe | None) -> float:
     """The share of a model's job still to do (0..1), from the epochs its checkpoint holds and the test
     frames already predicted: training is most of a job (about 85 % in the sample run), prediction
     most of the rest."""
-    from harness.train import train_config
     from models.zoo import CheckpointError, read_checkpoint
     test = run_dir / "data" / "sotif" / "ImageSets" / "test.txt"
     n_test = len(test.read_text().split()) if test.is_file() else 0
     predicted = len(list((run_dir / "predictions" / name).glob("[0-9]*.txt")))
-    if published_run.source(cfg, name):  # nothing to train
+    if recipe is None:  # an imported model: nothing to train
         return 0.15 * max(0.0, 1 - predicted / n_test) if n_test else 0.15
-    epochs = cfg.epochs or train_config(_model_of(name), cfg.model_profile).epochs
+    epochs = cfg.epochs or recipe.schedule.epochs
     ckpt = checkpoint_of(run_dir, name)
     try:
         done = read_checkpoint(ckpt).get("epoch", 0) if ckpt.is_file() else 0
@@ -380,14 +385,13 @@ def _work_left(cfg: RunConfig, run_dir: Path, name: str) -> float:
     return 0.85 * max(0.0, 1 - done / epochs) + 0.15 * max(0.0, 1 - predicted / n_test) if n_test else 1.0
 
 
-def _gt_database(cfg: RunConfig, run_dir: Path, names: list[str]) -> None:
+def _gt_database(cfg: RunConfig, run_dir: Path, recipes: dict[str, ModelRecipe]) -> None:
     """Build the training set's ground-truth database once, before jobs that would race to build it."""
     from harness.augment import AugmentConfig
     from harness.gt_database import load_or_build
     from harness.train import uses_gt_sampling
-    from models.zoo import build
     aug = AugmentConfig()  # what train() uses
-    if cfg.jobs > 1 and any(uses_gt_sampling(build(n, cfg.model_profile), aug) for n in names):
+    if cfg.jobs > 1 and any(uses_gt_sampling(r.build(), aug) for r in recipes.values()):
         data = run_dir / "data" / "train"
         load_or_build(data, data / "gt_database", aug.gt_sampling)
 
@@ -440,7 +444,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
     models run at once (not part of any stage key: changing it redoes nothing); ``seeds`` its
     number of training draws per model; ``lidar_model`` "carla" simulates every data set with
     CARLA's weather-blind LiDAR (the paper's protocol); ``warm_start`` starts PV-RCNN and Part-A2
-    from the run's SECOND and MVX-Net from its DV-SECOND (``WARM_FROM``), which then train first;
+    from the run's SECOND and MVX-Net from its DV-SECOND (their ``Recipe.warm_from``), which then train first;
     ``instances`` the SOTIF set's scenario instances per weather (1: the study's set) and
     ``sweep_instances`` the sweep set's (a finer map costs prediction time, not training); ``checkpoints``
     a checkpoint ``import`` wrote, or a folder of them, evaluated beside ``models`` (``harness.published_run``;
@@ -469,6 +473,7 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
     names = with_siblings(cfg, run_dir, names, progress)
     cfg, names = published_run.add(cfg, names, checkpoints)
     trained = published_run.trained(cfg, names)
+    recipes = model_recipes(cfg, trained)
     _refuse_foreign_folder(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     with folder_lock(run_dir, "run"):
@@ -487,8 +492,8 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
         data_identity.write_data_sets(run_dir)
         for line in data_identity.compare(run_dir) if progress else ():
             print(line, flush=True)
-        _gt_database(cfg, run_dir, trained)
-        done = _model_jobs(cfg, run_dir, names, train_hash, sotif_hash, runtime, progress, t0, sweep_hash)
+        _gt_database(cfg, run_dir, recipes)
+        done = _model_jobs(cfg, run_dir, names, recipes, train_hash, sotif_hash, runtime, progress, t0, sweep_hash)
         summary = {}
         for name in names:  # one model at a time: the latency figures own the machine
             probe = _runtime_probe(stages, cfg, run_dir, name)

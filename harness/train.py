@@ -37,65 +37,19 @@ from harness.dataset import KittiDataset, config_hash, dataset_hash, has_split
 from harness.gt_database import load_or_build
 from models import zoo
 from models.base import Detector
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    epochs: int
-    batch_size: int
-    lr: float  # peak learning rate of the one-cycle schedule
-    weight_decay: float = 0.01
-    grad_clip: float = 10.0
-
-
-TRAIN_CONFIGS = {"tiny": TrainConfig(epochs=2, batch_size=2, lr=3e-3),
-                 "compact": TrainConfig(epochs=4, batch_size=2, lr=3e-3),
-                 "kitti": TrainConfig(epochs=80, batch_size=4, lr=3e-3)}  # OpenPCDet adam_onecycle
-
-# The compact (default-profile) schedule per model: 14-25 minutes of training each on one CPU
-# thread beside another job (255 frames, batch 2), so that the seven-model default run, data and
-# inference included, stays well inside 150 minutes. Val AP40 3D moderate (45 held-out frames of
-# generator-1.4 data, seed 0) decided the counts: PointPillars 30 epochs (about 50 s each; on the
-# current data 18: 68.8, 30: 74.5, BEV 82.8 -> 86.3; on earlier data 6: 59.2, 12: 83.1, 18: 85.2;
-# 64 PFN channels instead of 32 made a step 40 % slower and gave 83.5 at 12);
-# SECOND 12 (6: 70.2, 12: 84.8; at 3 a lottery between seeds), DV-SECOND the same schedule;
-# PV-RCNN 6 and Part-A2 8 from the run's SECOND (``run`` warm-starts them; PV-RCNN at SECOND's 0.2 m
-# voxels from a 6-epoch SECOND: 93.2, cold at 0.4 m after 8: 68.1, after 16: 78.8; Part-A2 at 12:
-# val 88.2 against 83.2, but SOTIF headline 74.0 -> 71.0 with its proposals alone at 76.5, its second
-# stage no longer refining); PointRCNN 20 (at its 1,024 decoded points, seeds 0 / 1: 12 epochs 67.8 /
-# 46.9, still rising on the per-epoch frames; 20 epochs 72.8 / 71.4); MVX-Net 6
-# from the run's DV-SECOND (cold: 31.3; warm at the peak rate 3e-3: 69.4, its per-epoch AP falling
-# from 58.9 to 4.6 in epoch 2 as the rate peaks, hence ``WARM_LR``).
-COMPACT_EPOCHS = {"pointpillars": 30, "second": 12, "dv_second": 12, "parta2": 8, "pv_rcnn": 6,
-                  "point_rcnn": 20, "mvx_net": 6}
-
-# The peak learning rate of a warm-started training (``init_from``) where it differs from the
-# profile's: MVX-Net's trained LiDAR network beside an untrained image branch (at 1e-3 its
-# per-epoch AP rose 18.1, 46.9 over the first two epochs instead of falling).
-WARM_LR = {"mvx_net": 1e-3}
+from models.recipe import ModelRecipe, Schedule
 
 
 EPOCH_VAL_FRAMES = 20  # val frames scored after every epoch (a few seconds to a minute per model)
 
 
-# The kitti profile's peak learning rate where OpenPCDet's KITTI config differs from 3e-3
-# (parta2.yaml, pv_rcnn.yaml, pointrcnn.yaml: OPTIMIZATION.LR 0.01)
-KITTI_LR = {"parta2": 0.01, "pv_rcnn": 0.01, "point_rcnn": 0.01}
-
-
-def train_config(model: str, profile: str, warm: bool = False) -> TrainConfig:
-    """The training schedule of ``model`` in ``profile`` (per-model epochs in the compact profile,
-    per-model learning rates in the kitti profile; ``warm``: started from a sibling, ``WARM_LR``)."""
-    if profile not in TRAIN_CONFIGS:
-        raise ValueError(f"unknown profile {profile!r}; expected one of {', '.join(TRAIN_CONFIGS)}")
-    tcfg = TRAIN_CONFIGS[profile]
-    if profile == "compact" and model in COMPACT_EPOCHS:
-        tcfg = replace(tcfg, epochs=COMPACT_EPOCHS[model])
-    if profile == "kitti" and model in KITTI_LR:
-        tcfg = replace(tcfg, lr=KITTI_LR[model])
-    if warm and model in WARM_LR:
-        tcfg = replace(tcfg, lr=WARM_LR[model])
-    return tcfg
+def _resolved(model: str | ModelRecipe, profile: str | None, warm: bool = False) -> ModelRecipe:
+    """``model`` as resolved by a run, or a model name resolved in ``profile`` (default compact)."""
+    if not isinstance(model, ModelRecipe):
+        return zoo.resolve(model, profile or "compact", warm=warm)
+    if profile not in (None, model.profile):
+        raise ValueError(f"{model.model} is resolved for profile {model.profile!r}, not {profile!r}")
+    return model
 
 
 def _atomic_save(obj, path: Path) -> None:
@@ -104,11 +58,11 @@ def _atomic_save(obj, path: Path) -> None:
     atomic_write_bytes(path, buf.getvalue())
 
 
-def _build(model: str, profile: str, seed: int) -> torch.nn.Module:
+def _build(recipe: ModelRecipe, seed: int) -> torch.nn.Module:
     """The model initialised from ``seed`` without touching the global RNG state."""
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
-        return zoo.build(model, profile)
+        return recipe.build()
 
 
 def _resume(path: Path, net, optimizer, scheduler, ident: dict) -> tuple[int, float, list]:
@@ -153,7 +107,7 @@ def load_batch(ds: KittiDataset, frames, rng: np.random.Generator, aug: AugmentC
     return [augment(ds[int(i)], rng, aug, database) for i in frames]
 
 
-def _run_epoch(net, ds, optimizer, scheduler, tcfg: TrainConfig, seed: int, epoch: int, bar,
+def _run_epoch(net, ds, optimizer, scheduler, tcfg: Schedule, seed: int, epoch: int, bar,
                aug: AugmentConfig = AugmentConfig(), database=None, rank: int = 0, world: int = 1) -> float:
     """One epoch; with ``world`` > 1 data-parallel workers, this one (``rank``) takes the frames
     ``rank::world`` of every batch and the step is taken on the gradients summed over all of them."""
@@ -275,12 +229,12 @@ def uses_gt_sampling(net: Detector, aug: AugmentConfig) -> bool:
     return aug.gt_sampling.enabled and not net.uses_camera
 
 
-def default_workers(model: str, profile: str, device: str = "cpu") -> int:
+def default_workers(model: str | ModelRecipe, profile: str | None = None, device: str = "cpu") -> int:
     """Data-parallel workers of ``sotif-bench train``: one per core, at most one per frame of a
     batch (on the CPU; a CUDA device trains in one process)."""
     if device != "cpu" or launched_world() > 1:  # under torchrun every process is one worker
         return 1
-    return max(1, min(train_config(model, profile).batch_size, os.cpu_count() or 1))
+    return max(1, min(_resolved(model, profile).schedule.batch_size, os.cpu_count() or 1))
 
 
 def launched_world() -> int:
@@ -288,8 +242,7 @@ def launched_world() -> int:
     return int(os.environ.get("WORLD_SIZE", "1"))
 
 
-def _fit_launched(s: _Session, model: str, profile: str, seed: int, aug: AugmentConfig, progress: bool,
-                  device: str) -> dict | None:
+def _fit_launched(s: _Session, seed: int, aug: AugmentConfig, progress: bool, device: str) -> dict | None:
     """This process's part of a torchrun launch (env:// rendezvous; RANK and WORLD_SIZE from the
     launcher, on one machine or several): ``_fit`` as one data-parallel worker, exactly as the
     ``workers`` that ``--workers`` spawns. Rank 0 writes the checkpoint; returns its last state."""
@@ -297,7 +250,7 @@ def _fit_launched(s: _Session, model: str, profile: str, seed: int, aug: Augment
     dist.init_process_group("nccl" if device == "cuda" else "gloo", init_method="env://",
                             timeout=timedelta(minutes=30))
     try:
-        with _bar(s, model, profile, progress and rank == 0) as bar:
+        with _bar(s, progress and rank == 0) as bar:
             state = _fit(s, seed, aug, bar, rank, world)
         dist.barrier()  # the checkpoint is written before any process goes on
     finally:
@@ -308,10 +261,11 @@ def _fit_launched(s: _Session, model: str, profile: str, seed: int, aug: Augment
 @dataclass
 class _Session:
     """What a training needs, set up alike in every data-parallel worker."""
+    recipe: ModelRecipe
     net: torch.nn.Module
     ds: KittiDataset
     database: object
-    tcfg: TrainConfig
+    tcfg: Schedule
     ident: dict
     state: dict  # config, epochs, seed: the checkpoint's fixed entries
     optimizer: torch.optim.Optimizer
@@ -323,19 +277,18 @@ class _Session:
     history: list  # val_history of the completed epochs
 
 
-def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None, seed: int,
+def _session(recipe: ModelRecipe, data: Path, out: Path, epochs: int | None, seed: int,
              aug: AugmentConfig, init_from: Path | None = None) -> _Session:
-    cfg = zoo.config(model, profile)
-    tcfg = train_config(model, profile, warm=init_from is not None)
+    cfg, tcfg = recipe.config, recipe.schedule
     # an explicit epoch count is the schedule: `--epochs 8` and a profile of 8 epochs train alike
     tcfg = replace(tcfg, epochs=tcfg.epochs if epochs is None else int(epochs))
     epochs = tcfg.epochs
     if epochs < 1:
         raise ValueError(f"epochs must be >= 1, got {epochs}")
-    net = _build(model, profile, seed)
+    net = _build(recipe, seed)
     warm = {}  # a sibling's first stage, part of the identity: a changed sibling is another training
     if init_from is not None:  # the weights it brought in, not the file (whose training time differs on a rerun)
-        loaded, _ = zoo.warm_start(net, model, init_from)
+        loaded, _ = zoo.warm_start(net, recipe, init_from)
         own = net.state_dict()
         warm = {"warm_start": {"init_weights": zoo.weights_digest({n: own[n] for n in loaded}),
                                "warm_tensors": len(loaded)}}
@@ -344,7 +297,7 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
         raise ValueError(f"{data / 'ImageSets' / 'train.txt'}: no training frames")
     use_gts = uses_gt_sampling(net, aug)
     database = load_or_build(data, data / "gt_database", aug.gt_sampling) if use_gts else None
-    ident = {"model": model, "profile": profile, "data_hash": dataset_hash(data),
+    ident = {"model": recipe.model, "profile": recipe.profile, "data_hash": dataset_hash(data),
              "config_hash": config_hash({"model": asdict(cfg), "train": asdict(tcfg), "epochs": epochs,
                                          "seed": seed, "augment": asdict(aug), "gt_sampling": use_gts, **warm})}
     optimizer = torch.optim.AdamW(net.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
@@ -353,13 +306,14 @@ def _session(model: str, data: Path, out: Path, profile: str, epochs: int | None
                                                     pct_start=0.4, div_factor=10, final_div_factor=100)
     path = out / "checkpoint.pt"
     done, spent, history = _resume(path, net, optimizer, scheduler, ident)  # spent: s before this call
-    return _Session(net, ds, database, tcfg, ident, {"config": asdict(cfg), "epochs": epochs, "seed": seed, **warm},
+    return _Session(recipe, net, ds, database, tcfg, ident,
+                    {"config": asdict(cfg), "epochs": epochs, "seed": seed, **warm},
                     optimizer, scheduler, path, done, spent, steps, history)
 
 
-def _bar(s: _Session, model: str, profile: str, show: bool) -> tqdm:
-    return tqdm(total=s.steps, initial=s.done * (s.steps // s.tcfg.epochs), desc=f"train {model}/{profile}",
-                disable=not show, unit="step")
+def _bar(s: _Session, show: bool) -> tqdm:
+    return tqdm(total=s.steps, initial=s.done * (s.steps // s.tcfg.epochs),
+                desc=f"train {s.recipe.model}/{s.recipe.profile}", disable=not show, unit="step")
 
 
 def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: int = 1,
@@ -411,12 +365,12 @@ def _worker(rank: int, world: int, tmp: str, threads: int, parent: int, args: tu
     the folder ``tmp`` with it); rank 0 writes the checkpoint and shows the progress bar."""
     from harness.jobs import job_init
     job_init(threads, parent)
-    model, data, out, profile, epochs, seed, aug, init_from = args
+    recipe, data, out, epochs, seed, aug, init_from = args
     dist.init_process_group("gloo", init_method=f"file://{tmp}/store", rank=rank, world_size=world,
                             timeout=timedelta(minutes=30))
     try:
-        s = _session(model, data, out, profile, epochs, seed, aug, init_from)
-        with _bar(s, model, profile, progress and rank == 0) as bar:
+        s = _session(recipe, data, out, epochs, seed, aug, init_from)
+        with _bar(s, progress and rank == 0) as bar:
             _fit(s, seed, aug, bar, rank, world)
     except (ValueError, OSError) as e:  # bad input (a malformed frame, say): the message goes to the caller
         atomic_write_bytes(Path(tmp) / f"error-{rank}", str(e).encode())
@@ -456,11 +410,13 @@ def _fit_data_parallel(s: _Session, workers: int, args: tuple, progress: bool) -
     return state
 
 
-def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: int | None = None,
+def train(model: str | ModelRecipe, data: Path, out: Path, profile: str | None = None, epochs: int | None = None,
           device: str = "cpu", seed: int = 0, progress: bool = True, aug: AugmentConfig = AugmentConfig(),
           workers: int = 1, on_epoch=None, force: bool = False, init_from: Path | None = None) -> Path:
     """Train ``model`` on ``<data>/ImageSets/train.txt``; returns ``<out>/checkpoint.pt``. A file
     there that is not a checkpoint of ``model`` is refused, not replaced, unless ``force``.
+    ``model``: the ModelRecipe a run resolved (``models.zoo.resolve``: network, config and schedule),
+    or a model name, resolved here in ``profile`` (default compact; warm-started when ``init_from``).
     LiDAR-only models get ground-truth sampling (``aug.gt_sampling``, database cached in
     ``<data>/gt_database``); camera models do not (pasted objects are not in the image).
 
@@ -479,7 +435,8 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     """
     data, out = Path(data), Path(out)
     init_from = None if init_from is None else Path(init_from)
-    batch_size = train_config(model, profile).batch_size
+    recipe = _resolved(model, profile, warm=init_from is not None)
+    batch_size = recipe.schedule.batch_size
     if not 1 <= workers <= batch_size:
         raise ValueError(f"workers must be between 1 and the batch size {batch_size}, got {workers}")
     world = launched_world()
@@ -492,20 +449,20 @@ def train(model: str, data: Path, out: Path, profile: str = "compact", epochs: i
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device 'cuda' asked for, but torch {torch.__version__} sees no CUDA device here; "
                          "train with --device cpu")
-    _replaceable_checkpoint(out / "checkpoint.pt", model, force)
+    _replaceable_checkpoint(out / "checkpoint.pt", recipe.model, force)
     if world > 1 and device == "cuda":
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))
     with torch.device(device):
-        s = _session(model, data, out, profile, epochs, seed, aug, init_from)
+        s = _session(recipe, data, out, epochs, seed, aug, init_from)
         s.net.to(device)
         if world > 1:
-            state = _fit_launched(s, model, profile, seed, aug, progress, device)
+            state = _fit_launched(s, seed, aug, progress, device)
             if int(os.environ["RANK"]) != 0:
                 return s.path
         elif workers > 1 and s.done < s.tcfg.epochs:
-            state = _fit_data_parallel(s, workers, (model, data, out, profile, epochs, seed, aug, init_from), progress)
+            state = _fit_data_parallel(s, workers, (recipe, data, out, epochs, seed, aug, init_from), progress)
         else:
-            with _bar(s, model, profile, progress) as bar:
+            with _bar(s, progress) as bar:
                 state = _fit(s, seed, aug, bar, on_epoch=on_epoch)
         if state is None and s.path.is_file():  # trained before; validated unless stopped just before it
             state = zoo.read_checkpoint(s.path, map_location=device)

@@ -77,39 +77,53 @@ def assign_targets(anchors: Tensor, gt: Tensor, ignore: Tensor, cfg: HeadConfig)
     return labels, matched
 
 
+def head_convs(c_in: int, anchors: int, classes: int = 1) -> tuple[nn.Conv2d, nn.Conv2d, nn.Conv2d]:
+    """The 1x1 convs of an anchor head with ``anchors`` anchors per BEV cell: class logits (anchors *
+    classes), box residuals (anchors * 7) and direction logits (anchors * 2), each anchor's channels
+    together. The class bias starts at the focal loss's 1 % prior, the box conv near zero."""
+    conv_cls = nn.Conv2d(c_in, anchors * classes, 1)
+    conv_box = nn.Conv2d(c_in, anchors * 7, 1)
+    conv_dir = nn.Conv2d(c_in, anchors * 2, 1)
+    nn.init.constant_(conv_cls.bias, -math.log((1 - 0.01) / 0.01))
+    nn.init.normal_(conv_box.weight, std=0.001)
+    nn.init.zeros_(conv_box.bias)
+    return conv_cls, conv_box, conv_dir
+
+
+def head_outputs(feats: Tensor, convs: tuple[nn.Conv2d, nn.Conv2d, nn.Conv2d]) -> tuple[Tensor, Tensor, Tensor]:
+    """(1, C, H, W) -> class logits (A, n), box residuals (A, 7), direction logits (A, 2) of the
+    ``head_convs`` ``convs``, A = H * W * anchors per cell, in the conv layout (cell, anchor).
+
+    The three 1x1 convs run as one conv with their stacked weights (the same products): torch's
+    convolution of a large map into 2 or 4 channels is several times slower than into their sum
+    (in SECOND's training step the three separate convs took ~9 %).
+    """
+    out = F.conv2d(feats, torch.cat([c.weight for c in convs]), torch.cat([c.bias for c in convs]))
+    out = out[0].permute(1, 2, 0).reshape(-1, out.shape[1])  # (H * W, anchors * (n + 9))
+    k, b = convs[0].out_channels, convs[1].out_channels  # anchors * n, anchors * 7
+    return out[:, :k].reshape(-1, 7 * k // b), out[:, k:k + b].reshape(-1, 7), out[:, k + b:].reshape(-1, 2)
+
+
 class AnchorHead(nn.Module):
     """1x1 convs for class logits (R), box residuals (R * 7) and direction logits (R * 2)."""
+
+    dir_offset = math.pi / 4  # the yaw offset of the direction bins (``box_coder.apply_direction``)
 
     def __init__(self, c_in: int, feat_hw: tuple[int, int], pc_range, cfg: HeadConfig):
         super().__init__()
         self.cfg = cfg
-        r = len(cfg.rotations)
-        self.conv_cls = nn.Conv2d(c_in, r, 1)
-        self.conv_box = nn.Conv2d(c_in, r * 7, 1)
-        self.conv_dir = nn.Conv2d(c_in, r * 2, 1)
-        nn.init.constant_(self.conv_cls.bias, -math.log((1 - 0.01) / 0.01))
-        nn.init.normal_(self.conv_box.weight, std=0.001)
-        nn.init.zeros_(self.conv_box.bias)
+        self.conv_cls, self.conv_box, self.conv_dir = head_convs(c_in, len(cfg.rotations))
         self.register_buffer("anchors", make_anchors(pc_range, feat_hw, cfg), persistent=False)
 
     def forward(self, feats: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """(1, C, H, W) -> cls logits (A,), box residuals (A, 7), direction logits (A, 2).
-
-        The three 1x1 convs run as one conv with their stacked weights (the same products): torch's
-        convolution of a large map into 2 or 4 channels is several times slower than into their sum
-        (in SECOND's training step the three separate convs took ~9 %).
-        """
-        convs = (self.conv_cls, self.conv_box, self.conv_dir)
-        out = F.conv2d(feats, torch.cat([c.weight for c in convs]), torch.cat([c.bias for c in convs]))
-        out = out[0].permute(1, 2, 0).reshape(-1, out.shape[1])  # (H * W, R * 10)
-        r = len(self.cfg.rotations)
-        # a cell's row holds its R anchors' channels, as in the conv layout (H * W * R, c)
-        return out[:, :r].reshape(-1), out[:, r:8 * r].reshape(-1, 7), out[:, 8 * r:].reshape(-1, 2)
+        """(1, C, H, W) -> cls logits (A,), box residuals (A, 7), direction logits (A, 2)."""
+        cls, box, dirs = head_outputs(feats, (self.conv_cls, self.conv_box, self.conv_dir))
+        return cls.reshape(-1), box, dirs
 
     def decode(self, box: Tensor, dir_logits: Tensor) -> Tensor:
         """(A, 7) boxes with yaw folded by the direction bin."""
         boxes = box_coder.decode(box, self.anchors)
-        yaw = box_coder.apply_direction(boxes[:, 6], torch.argmax(dir_logits, dim=1))
+        yaw = box_coder.apply_direction(boxes[:, 6], torch.argmax(dir_logits, dim=1), self.dir_offset)
         return torch.cat([boxes[:, :6], yaw[:, None]], dim=1)
 
     def detect(self, feats: Tensor) -> tuple[Tensor, Tensor]:
@@ -131,7 +145,7 @@ class AnchorHead(nn.Module):
         target_boxes = gt[matched[pos]] if gt.shape[0] else box.new_zeros(0, 7)  # (P, 7)
         anchors = self.anchors[pos]
         loss_box = box_regression_loss(box[pos], box_coder.encode(target_boxes, anchors)) / num_pos
-        dir_target = box_coder.direction_target(target_boxes[:, 6])
+        dir_target = box_coder.direction_target(target_boxes[:, 6], self.dir_offset)
         loss_dir = direction_loss(dirs[pos], dir_target) / num_pos
         c = self.cfg
         total = c.weight_cls * loss_cls + c.weight_box * loss_box + c.weight_dir * loss_dir

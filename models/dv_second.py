@@ -11,32 +11,20 @@ from dataclasses import dataclass, replace
 
 from torch import Tensor
 
-from models.anchor_head import HeadConfig
 from models.multiclass_head import MMDET3D_DIR_OFFSET, PublishedHeadConfig
-from models.second import PUBLISHED, SECOND, TINY, SECONDConfig
-from models.voxel_backbone import VoxelBackboneConfig
+from models.recipe import Recipe
+from models.second import PUBLISHED, SECOND, TINY, SECONDConfig, SECONDNetwork, network_fields
 from models.voxelize import Voxels, dynamic_voxelize
-
-_BASE = SECONDConfig()
 
 
 @dataclass(frozen=True)
-class DVSECONDConfig:
-    pc_range: tuple[float, ...] = _BASE.pc_range
-    voxel_size: tuple[float, float, float] = _BASE.voxel_size
-    backbone3d: VoxelBackboneConfig = _BASE.backbone3d
-    layers: tuple[int, ...] = _BASE.layers
-    strides: tuple[int, ...] = _BASE.strides
-    filters: tuple[int, ...] = _BASE.filters
-    upsample_strides: tuple[float, ...] = _BASE.upsample_strides
-    upsample_filters: tuple[int, ...] = _BASE.upsample_filters
-    head: HeadConfig = _BASE.head
+class DVSECONDConfig(SECONDNetwork):
+    """SECOND's network without its voxel caps (``max_points``, ``max_voxels``)."""
 
 
 def _from_second(cfg: SECONDConfig) -> DVSECONDConfig:
     """The same network with the voxel caps dropped."""
-    return DVSECONDConfig(cfg.pc_range, cfg.voxel_size, cfg.backbone3d, cfg.layers, cfg.strides, cfg.filters,
-                          cfg.upsample_strides, cfg.upsample_filters, cfg.head)
+    return DVSECONDConfig(**network_fields(cfg))
 
 
 # MMDetection3D configs/_base_/models/second_hv_secfpn_kitti.py: classes in the data set config's
@@ -49,6 +37,7 @@ MMDET3D_HEAD = PublishedHeadConfig(
     nms_pre=100, nms_iou=0.01, max_out=50)
 CONFIGS = {"tiny": _from_second(TINY), "compact": DVSECONDConfig(),
            "kitti": replace(_from_second(PUBLISHED), head=MMDET3D_HEAD)}
+RECIPE = Recipe(epochs={"compact": 12})  # SECOND's schedule: the two stay a clean A/B
 
 
 class DVSECOND(SECOND):

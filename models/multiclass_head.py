@@ -24,7 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from models import box_coder
-from models.anchor_head import AnchorHead, HeadConfig, assign_targets
+from models.anchor_head import AnchorHead, HeadConfig, assign_targets, head_convs, head_outputs
 from models.losses import box_regression_loss, direction_loss, sigmoid_focal_loss
 from models.nms import nms_in_order, ranked_topk
 
@@ -95,13 +95,9 @@ class MultiClassAnchorHead(AnchorHead):
     def __init__(self, c_in: int, feat_hw: tuple[int, int], pc_range, cfg: PublishedHeadConfig):
         nn.Module.__init__(self)
         self.cfg = cfg
+        self.dir_offset = cfg.dir_offset
         n, a = len(cfg.classes), len(cfg.classes) * len(cfg.rotations)  # classes, anchors per cell
-        self.conv_cls = nn.Conv2d(c_in, a * n, 1)
-        self.conv_box = nn.Conv2d(c_in, a * 7, 1)
-        self.conv_dir = nn.Conv2d(c_in, a * 2, 1)
-        nn.init.constant_(self.conv_cls.bias, -math.log((1 - 0.01) / 0.01))
-        nn.init.normal_(self.conv_box.weight, std=0.001)
-        nn.init.zeros_(self.conv_box.bias)
+        self.conv_cls, self.conv_box, self.conv_dir = head_convs(c_in, a, n)
         self.register_buffer("anchors", published_anchors(pc_range, feat_hw, cfg), persistent=False)
         anchor_set = torch.arange(a) // len(cfg.rotations)  # (A_cell,) class set of each anchor of a cell
         self.register_buffer("anchor_set", anchor_set.repeat(feat_hw[0] * feat_hw[1]), persistent=False)  # (A,)
@@ -109,19 +105,7 @@ class MultiClassAnchorHead(AnchorHead):
 
     def forward(self, feats: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """(1, C, H, W) -> class logits (A, n), box residuals (A, 7), direction logits (A, 2)."""
-        n = len(self.cfg.classes)
-        convs = (self.conv_cls, self.conv_box, self.conv_dir)
-        out = nn.functional.conv2d(feats, torch.cat([c.weight for c in convs]), torch.cat([c.bias for c in convs]))
-        out = out[0].permute(1, 2, 0).reshape(-1, out.shape[1])  # (H * W, A_cell * (n + 9))
-        a = self.conv_cls.out_channels // n
-        return (out[:, :a * n].reshape(-1, n), out[:, a * n:a * (n + 7)].reshape(-1, 7),
-                out[:, a * (n + 7):].reshape(-1, 2))
-
-    def decode(self, box: Tensor, dir_logits: Tensor) -> Tensor:
-        """(A, 7) boxes, yaw folded by the direction bin about the reference's offset."""
-        boxes = box_coder.decode(box, self.anchors)
-        yaw = box_coder.apply_direction(boxes[:, 6], torch.argmax(dir_logits, dim=1), self.cfg.dir_offset)
-        return torch.cat([boxes[:, :6], yaw[:, None]], dim=1)
+        return head_outputs(feats, (self.conv_cls, self.conv_box, self.conv_dir))
 
     def detect(self, feats: Tensor) -> tuple[Tensor, Tensor]:
         """Car boxes (M, 7) and scores (M,) after the reference's post-processing."""
@@ -148,7 +132,7 @@ class MultiClassAnchorHead(AnchorHead):
         loss_cls = sigmoid_focal_loss(cls, targets, weights) / num_pos
         target_boxes = gt[matched[labels == 1]] if gt.shape[0] else box.new_zeros(0, 7)  # (P, 7)
         loss_box = box_regression_loss(box[pos_rows], box_coder.encode(target_boxes, self.anchors[pos_rows])) / num_pos
-        dir_target = box_coder.direction_target(target_boxes[:, 6], self.cfg.dir_offset)
+        dir_target = box_coder.direction_target(target_boxes[:, 6], self.dir_offset)
         loss_dir = direction_loss(dirs[pos_rows], dir_target) / num_pos
         c = self.cfg
         total = c.weight_cls * loss_cls + c.weight_box * loss_box + c.weight_dir * loss_dir

@@ -13,6 +13,7 @@ from torch import Tensor
 from models.anchor_head import HeadConfig
 from models.backbone2d import BEVBackbone, scatter_to_bev
 from models.multiclass_head import PublishedHeadConfig, make_head
+from models.recipe import Recipe
 from models.single_stage import AnchorDetector
 from models.vfe import PillarVFE
 from models.voxelize import Grid, hard_voxelize
@@ -54,6 +55,10 @@ CONFIGS = {
         upsample_strides=(1, 2, 4), upsample_filters=(128, 128, 128),
         head=PublishedHeadConfig(nms_pre=4096, nms_iou=0.01, max_out=500)),
 }
+# compact: 30 epochs, about 50 s each (val AP40 3D moderate on 45 held-out frames of generator-1.4 data,
+# seed 0: 68.8 after 18, 74.5 after 30, BEV 82.8 -> 86.3; on earlier data 59.2 after 6, 83.1 after 12, 85.2
+# after 18; 64 PFN channels instead of 32 made a step 40 % slower and gave 83.5 after 12)
+RECIPE = Recipe(epochs={"compact": 30})
 
 
 class PointPillars(AnchorDetector):

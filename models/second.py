@@ -6,12 +6,13 @@
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 from torch import Tensor
 
 from models.anchor_head import HeadConfig
 from models.multiclass_head import PublishedHeadConfig
+from models.recipe import Recipe
 from models.single_stage import AnchorDetector, bev_stages
 from models.sparse import SparseTensor, height_compress
 from models.vfe import MeanVFE
@@ -20,11 +21,12 @@ from models.voxelize import Grid, Voxels, hard_voxelize
 
 
 @dataclass(frozen=True)
-class SECONDConfig:
+class SECONDNetwork:
+    """SECOND's network from its voxels on (range, voxel size, sparse 3D backbone, 2D backbone, anchor
+    head): the whole of DV-SECOND's config and the LiDAR part of MVX-Net's."""
+
     pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.0)  # metres: the labelled highway
     voxel_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # metres
-    max_points: int = 5  # per voxel
-    max_voxels: int = 40000
     backbone3d: VoxelBackboneConfig = VoxelBackboneConfig(
         16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 1), StageSpec(64, (2, 2, 2), (1, 1, 1), 1),
              StageSpec(64, (2, 1, 1), (0, 1, 1), 1)), 64, (1, 0, 0))
@@ -34,6 +36,17 @@ class SECONDConfig:
     upsample_strides: tuple[float, ...] = (2, 4)
     upsample_filters: tuple[int, ...] = (64, 64)
     head: HeadConfig = HeadConfig(anchor_z=-1.0)
+
+
+def network_fields(cfg: SECONDNetwork) -> dict:
+    """The ``SECONDNetwork`` fields of ``cfg`` by name (to build another config on the same network)."""
+    return {f.name: getattr(cfg, f.name) for f in fields(SECONDNetwork)}
+
+
+@dataclass(frozen=True)
+class SECONDConfig(SECONDNetwork):
+    max_points: int = 5  # per voxel
+    max_voxels: int = 40000
 
 
 TINY = SECONDConfig(
@@ -54,6 +67,9 @@ BACKBONE_8X = Backbone8xConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2), Stag
                                     StageSpec(64, (2, 2, 2), (0, 1, 1), 2)), 128, (0, 0, 0))
 PUBLISHED = replace(KITTI, backbone3d=BACKBONE_8X, head=PublishedHeadConfig(nms_pre=4096, nms_iou=0.01, max_out=500))
 CONFIGS = {"tiny": TINY, "compact": SECONDConfig(), "kitti": PUBLISHED}
+# compact: 12 epochs (val AP40 3D moderate on 45 held-out frames, seed 0: 70.2 after 6, 84.8 after 12; after
+# 3 a lottery between seeds)
+RECIPE = Recipe(epochs={"compact": 12})
 
 
 class SECOND(AnchorDetector):

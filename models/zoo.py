@@ -2,8 +2,11 @@
 
 - ``MODEL_NAMES``: the seven detector names (README).
 - ``build(name, profile="compact") -> Detector``: imports ``models.<name>`` lazily; every
-  detector module exposes ``CONFIGS: dict[str, Config]`` with keys "tiny", "compact", "kitti"
-  and ``build(profile) -> Detector``.
+  detector module exposes ``CONFIGS: dict[str, Config]`` with keys "tiny", "compact", "kitti",
+  ``RECIPE: Recipe`` and ``build(profile) -> Detector``.
+- ``recipe(name) -> Recipe``: the model's training recipe (``RECIPE`` of models/<name>.py).
+- ``resolve(name, profile, warm) -> ModelRecipe``: the model in one profile, resolved once: its
+  network, architecture config, training schedule and warm start (``models.recipe``).
 - ``available()``: names whose module imports.
 - ``read_checkpoint(path) -> dict``: a checkpoint's contents, loaded with ``weights_only=True``
   (tensors and plain Python data only: a pickle that would run code is refused, never run).
@@ -29,9 +32,22 @@ from pathlib import Path
 import torch
 
 from models.base import Detector
+from models.recipe import PROFILES, ModelRecipe, Recipe
 
 MODEL_NAMES = ("pointpillars", "second", "dv_second", "parta2", "pv_rcnn", "point_rcnn", "mvx_net")
-PROFILES = ("tiny", "compact", "kitti")
+
+# Part-A2's and PV-RCNN's recipes until their modules carry them as ``RECIPE`` (OpenPCDet's parta2.yaml and
+# pv_rcnn.yaml: OPTIMIZATION.LR 0.01). Compact: 6 (PV-RCNN) and 8 (Part-A2) epochs from the run's SECOND:
+# PV-RCNN at SECOND's 0.2 m voxels from a 6-epoch SECOND reached val 93.2, cold at 0.4 m 68.1 after 8 epochs
+# and 78.8 after 16; Part-A2 at 12 epochs reached val 88.2 against 83.2, but its SOTIF headline fell from 74.0
+# to 71.0 with its proposals alone at 76.5 (its second stage no longer refining). Their RPN is SECOND's
+# anchor head (``head.`` in SECOND's checkpoint), and Part-A2's sparse U-Net encoder SECOND's 3D backbone.
+_HELD_RECIPES = {
+    "parta2": Recipe(epochs={"compact": 8}, lr={"kitti": 0.01}, warm_from="second",
+                     warm_aliases=(("rpn.", "head."), ("unet.encoder.", "backbone3d."))),
+    "pv_rcnn": Recipe(epochs={"compact": 6}, lr={"kitti": 0.01}, warm_from="second",
+                      warm_aliases=(("rpn.", "head."),)),
+}
 
 
 class CheckpointError(ValueError):
@@ -57,6 +73,21 @@ def build(name: str, profile: str = "compact") -> Detector:
     """A freshly initialised detector."""
     config(name, profile)  # validates name and profile with a clear message
     return _module(name).build(profile)
+
+
+def recipe(name: str) -> Recipe:
+    """The training recipe of a model (its module's ``RECIPE``)."""
+    module = _module(name)
+    return _HELD_RECIPES[name] if name in _HELD_RECIPES else module.RECIPE
+
+
+def resolve(name: str, profile: str = "compact", warm: bool = False) -> ModelRecipe:
+    """``name`` in ``profile``, resolved once; ``warm``: its training starts from a checkpoint (in a
+    run, its recipe's ``warm_from`` sibling's; the schedule then takes the recipe's ``warm_lr``)."""
+    rec = recipe(name)
+    return ModelRecipe(model=name, profile=profile, config=config(name, profile), schedule=rec.schedule(profile, warm),
+                       network=detector_class(name), warm_from=rec.warm_from if warm else None,
+                       warm_aliases=rec.warm_aliases)
 
 
 def available() -> tuple[str, ...]:
@@ -200,12 +231,6 @@ def load_checkpoint(path) -> tuple[Detector, dict]:
     return model, meta
 
 
-# Where a model keeps a sibling's first stage under another name: (prefix in the model, prefix in
-# the sibling's checkpoint). PV-RCNN and Part-A2 call SECOND's anchor head their RPN, and Part-A2's
-# sparse U-Net holds SECOND's 3D backbone as its encoder.
-WARM_START_ALIASES = {"pv_rcnn": (("rpn.", "head."),), "parta2": (("rpn.", "head."), ("unet.encoder.", "backbone3d."))}
-
-
 def weights_digest(state_dict: dict) -> str:
     """SHA-256 (16 hex) of a state dict's tensors (names, dtypes, shapes, values): the identity of
     trained weights, which the checkpoint file's bytes are not (they also hold the training time)."""
@@ -217,22 +242,24 @@ def weights_digest(state_dict: dict) -> str:
     return h.hexdigest()[:16]
 
 
-def warm_start(net: torch.nn.Module, model: str, path) -> tuple[list[str], list[str]]:
-    """Load into ``net`` (a ``model``) every tensor of the checkpoint at ``path`` whose name (after
-    ``WARM_START_ALIASES``) and shape match one of ``net``'s: a first stage trained as its one-stage
-    sibling (PV-RCNN's or Part-A2's from SECOND, MVX-Net's LiDAR network from DV-SECOND), the rest
-    as initialised. Returns (loaded names, names left as they were). A checkpoint from which nothing
-    fits is refused."""
+def warm_start(net: torch.nn.Module, model: str | ModelRecipe, path) -> tuple[list[str], list[str]]:
+    """Load into ``net`` (a ``model``: its name or its ModelRecipe) every tensor of the checkpoint at
+    ``path`` whose name (after the recipe's ``warm_aliases``) and shape match one of ``net``'s: a first
+    stage trained as its one-stage sibling (PV-RCNN's or Part-A2's from SECOND, MVX-Net's LiDAR network
+    from DV-SECOND), the rest as initialised. Returns (loaded names, names left as they were). A
+    checkpoint from which nothing fits is refused."""
     path = Path(path)
     ckpt = read_checkpoint(path)
     if "state_dict" not in ckpt:
         raise CheckpointError(f"{path}: checkpoint lacks state_dict")
     source = ckpt["state_dict"]
     _refuse_broken_weights(path, source)
+    aliases = (model if isinstance(model, ModelRecipe) else recipe(model)).warm_aliases
+    model = model.model if isinstance(model, ModelRecipe) else model
     own = net.state_dict()
     take, loaded, kept = {}, [], []
     for name, tensor in own.items():
-        candidates = [name] + [src + name[len(dst):] for dst, src in WARM_START_ALIASES.get(model, ())
+        candidates = [name] + [src + name[len(dst):] for dst, src in aliases
                                if name.startswith(dst)]
         hit = next((c for c in candidates if c in source and source[c].shape == tensor.shape), None)
         if hit is None:

@@ -188,7 +188,7 @@ def test_weather_names_match_in_any_case_and_an_unknown_one_gets_a_suggestion(tm
 def test_model_names_match_in_any_case_and_an_unknown_one_gets_a_suggestion(tmp_path, monkeypatch, capsys):
     import harness.train
     calls = []
-    monkeypatch.setattr(harness.train, "train", lambda model, *a, **k: calls.append(model) or tmp_path / "c.pt")
+    monkeypatch.setattr(harness.train, "train", lambda model, *a, **k: calls.append(model.model) or tmp_path / "c.pt")
     argv = ["--quiet", "train", "--data", str(tmp_path), "--out", str(tmp_path / "o"), "--workers", "1", "--model"]
     assert main(argv + ["PointPillars"]) == 0 and calls == ["pointpillars"]
     assert main(argv + ["pointpilars"]) == 2

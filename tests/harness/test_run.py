@@ -373,7 +373,8 @@ def test_an_interrupted_job_process_takes_no_queued_job():
               " initargs=(1,))\n"
               "pid = pool.submit(os.getpid).result()\n"
               "running = pool.submit(time.sleep, 120)\n"
-              "queued = pool.submit(_model_job, None, None, 'pointpillars', '', '', 'onnxruntime', False, 1, False)\n"
+              "queued = pool.submit(_model_job, None, None, 'pointpillars', None, '', '', 'onnxruntime', False, 1,"
+              " False)\n"
               "time.sleep(1.0)\n"
               "t0 = time.monotonic()\n"
               "os.kill(pid, signal.SIGINT)\n"
@@ -406,13 +407,15 @@ def test_warm_start_trains_the_sibling_first_and_starts_from_it(tmp_path, monkey
     cfg = replace(TINY, warm_start=True)
     order = []
     monkeypatch.setattr(hr, "_model_job", lambda c, d, name, *a: order.append(name) or ({}, {}))
-    hr._model_jobs(cfg, tmp_path, ["pv_rcnn", "mvx_net", "point_rcnn", "dv_second", "second"], "", "", "onnxruntime",
-                   False, 0.0)
+    names = ["pv_rcnn", "mvx_net", "point_rcnn", "dv_second", "second"]
+    hr._model_jobs(cfg, tmp_path, names, hr.model_recipes(cfg, names), "", "", "onnxruntime", False, 0.0)
     assert order.index("second") < order.index("pv_rcnn") and order.index("dv_second") < order.index("mvx_net")
     with pytest.raises(ValueError, match="--warm-start: pv_rcnn starts from second, which is neither among the models"):
-        hr._model_jobs(cfg, tmp_path, ["pv_rcnn"], "", "", "onnxruntime", False, 0.0)
+        hr._model_jobs(cfg, tmp_path, ["pv_rcnn"], hr.model_recipes(cfg, ["pv_rcnn"]), "", "", "onnxruntime", False,
+                       0.0)
     order.clear()
-    hr._model_jobs(replace(cfg, warm_start=False), tmp_path, ["pv_rcnn"], "", "", "onnxruntime", False, 0.0)
+    cold = replace(cfg, warm_start=False)
+    hr._model_jobs(cold, tmp_path, ["pv_rcnn"], hr.model_recipes(cold, ["pv_rcnn"]), "", "", "onnxruntime", False, 0.0)
     assert order == ["pv_rcnn"]  # a cold start needs no sibling
     # the sibling's checkpoint (the same draw's) starts the training, and its digest is in the stage key
     sibling = tmp_path / "models" / "second.seed1" / "checkpoint.pt"
@@ -427,9 +430,12 @@ def test_warm_start_trains_the_sibling_first_and_starts_from_it(tmp_path, monkey
     monkeypatch.undo()  # the real model job, with a training that records its arguments
     monkeypatch.setattr("harness.train.train", train)
     with pytest.raises(KeyboardInterrupt):
-        hr._model_job(cfg, tmp_path, "pv_rcnn.seed1", "h", "h", "onnxruntime", False, None, False, 1)
+        hr._model_job(cfg, tmp_path, "pv_rcnn.seed1", hr.model_recipes(cfg, ["pv_rcnn"])["pv_rcnn"], "h", "h",
+                      "onnxruntime", False, None, False, 1)
     assert seen["init_from"] == sibling and seen["seed"] == cfg.seed + 1
-    assert hr._sibling(cfg, "point_rcnn") is None and hr._sibling(cfg, "mvx_net.seed2") == "dv_second.seed2"
+    recipes = hr.model_recipes(cfg, ["point_rcnn", "mvx_net"])
+    assert hr._sibling(recipes["point_rcnn"], "point_rcnn") is None
+    assert hr._sibling(recipes["mvx_net"], "mvx_net.seed2") == "dv_second.seed2"
 
 
 def test_a_changed_graph_code_exports_again_and_trains_nothing(tmp_path, monkeypatch):
@@ -454,5 +460,6 @@ def test_a_changed_graph_code_exports_again_and_trains_nothing(tmp_path, monkeyp
     stages = Stages(tmp_path, False)
     for code in ("a", "a", "b"):
         monkeypatch.setattr(ms, "graph_code", lambda code=code: code)
-        hr._train_export(stages, TINY, tmp_path, "pointpillars", "data")
+        recipe = hr.model_recipes(TINY, ["pointpillars"])["pointpillars"]
+        hr._train_export(stages, TINY, tmp_path, recipe, "pointpillars", "data")
     assert calls == ["train", "export", "export"]

@@ -40,20 +40,6 @@ def test_train_writes_checkpoint_and_resumes(tmp_path, capsys):
         assert torch.allclose(v.float(), state["state_dict"][k].float(), atol=1e-5)  # same seed, same run
 
 
-def test_compact_schedule_is_per_model_and_other_profiles_are_shared():
-    from harness.train import COMPACT_EPOCHS, TRAIN_CONFIGS, train_config
-    from models.zoo import MODEL_NAMES
-    assert set(COMPACT_EPOCHS) == set(MODEL_NAMES)
-    for name in MODEL_NAMES:
-        assert train_config(name, "compact").epochs == COMPACT_EPOCHS[name]
-        assert train_config(name, "compact").lr == TRAIN_CONFIGS["compact"].lr
-        assert train_config(name, "tiny") == TRAIN_CONFIGS["tiny"]
-        assert train_config(name, "kitti").lr == {"parta2": 0.01, "pv_rcnn": 0.01, "point_rcnn": 0.01}.get(name, 3e-3)
-        assert train_config(name, "compact", warm=True).lr == {"mvx_net": 1e-3}.get(name, 3e-3)
-    with pytest.raises(ValueError, match="unknown profile 'huge'"):
-        train_config("second", "huge")
-
-
 def test_a_training_whose_loss_turns_nan_stops_naming_the_step_and_keeps_the_last_epoch(tmp_path, monkeypatch):
     from models.pointpillars import PointPillars
     data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=5)
