@@ -31,9 +31,11 @@ from models.box_frame import inside_boxes
 from models.image_branch import bilinear_sample
 from models.losses import sigmoid_focal_loss
 from models.pointnet2 import PointBatchNorm, SetAbstraction, farthest_point_sample
+from models.recipe import Recipe
 from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITargetConfig,
                              finalize, propose, refine_loss, roi_support, sample_rois)
 from models.roi_pool import RoIGridPool
+from models.second import SECONDConfig
 from models.single_stage import bev_stages, frame_targets
 from models.sparse import SparseTensor, height_compress
 from models.vfe import MeanVFE
@@ -42,22 +44,10 @@ from models.voxelize import Grid, hard_voxelize
 
 
 @dataclass(frozen=True)
-class PVRCNNConfig:
-    # SECOND's range and voxels: its first stage is a SECOND, and the run starts it from the run's SECOND
+class PVRCNNConfig(SECONDConfig):
+    # SECOND's first stage (SECONDConfig: range, voxels, 3D and 2D backbones, anchor head), which the run
+    # starts from the run's SECOND
     # (0.4 m voxels: val 68.1, SOTIF headline 46.6; 0.2 m from SECOND, 6 epochs: 93.2 and 67.7)
-    pc_range: tuple[float, ...] = (0.0, -32.0, -3.0, 80.0, 32.0, 1.0)  # x0 y0 z0 x1 y1 z1, m
-    voxel_size: tuple[float, float, float] = (0.2, 0.2, 0.2)  # m
-    max_points: int = 5  # per voxel
-    max_voxels: int = 40000
-    backbone3d: VoxelBackboneConfig = VoxelBackboneConfig(
-        16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 1), StageSpec(64, (2, 2, 2), (1, 1, 1), 1),
-             StageSpec(64, (2, 1, 1), (0, 1, 1), 1)), 64, (1, 0, 0))
-    bev_layers: tuple[int, ...] = (2, 2)
-    bev_strides: tuple[int, ...] = (1, 2)
-    bev_filters: tuple[int, ...] = (64, 128)
-    bev_up_strides: tuple[float, ...] = (2, 4)
-    bev_up_filters: tuple[int, ...] = (64, 64)
-    head: HeadConfig = HeadConfig(anchor_z=-1.0)
     proposals_train: ProposalConfig = ProposalConfig(nms_pre=256, nms_iou=0.7, rois=64)
     proposals_test: ProposalConfig = ProposalConfig(nms_pre=256, nms_iou=0.7, rois=32)
     keypoints: int = 512  # farthest-point-sampled keypoints
@@ -93,8 +83,8 @@ CONFIGS = {
         backbone3d=VoxelBackboneConfig(8, (StageSpec(8, (2, 2, 2), (1, 1, 1), 0),
                                            StageSpec(16, (2, 2, 2), (1, 1, 1), 0),
                                            StageSpec(16, (2, 1, 1), (0, 1, 1), 0)), 16, (1, 0, 0)),
-        bev_layers=(1,), bev_strides=(1,), bev_filters=(16,), bev_up_strides=(2,),
-        bev_up_filters=(16,), head=HeadConfig(anchor_z=-1.0, nms_pre=64),
+        layers=(1,), strides=(1,), filters=(16,), upsample_strides=(2,),
+        upsample_filters=(16,), head=HeadConfig(anchor_z=-1.0, nms_pre=64),
         proposals_train=ProposalConfig(64, 0.7, 16), proposals_test=ProposalConfig(64, 0.7, 8),
         keypoints=64, raw_mlps=((8,), (8,)), level_nsamples=(8, 8), kp_channels=16, grid=3,
         grid_nsamples=(8, 8), grid_mlps=((8,), (8,)), fc=(32,), branch_fc=(32,),
@@ -108,8 +98,8 @@ CONFIGS = {
         backbone3d=VoxelBackboneConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2),
                                             StageSpec(64, (2, 2, 2), (1, 1, 1), 2),
                                             StageSpec(64, (2, 2, 2), (1, 1, 1), 2)), 128, (0, 0, 0)),
-        bev_layers=(5, 5), bev_strides=(1, 2), bev_filters=(128, 256), bev_up_strides=(1, 2),
-        bev_up_filters=(256, 256), head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
+        layers=(5, 5), strides=(1, 2), filters=(128, 256), upsample_strides=(1, 2),
+        upsample_filters=(256, 256), head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
         proposals_train=ProposalConfig(9000, 0.8, 512), proposals_test=ProposalConfig(1024, 0.7, 100),
         keypoints=2048, raw_radii=(0.4, 0.8), raw_mlps=((16, 16), (16, 16)), levels=(0, 1, 2, 3),
         level_radii=((0.4, 0.8), (0.8, 1.2), (1.2, 2.4), (2.4, 4.8)), level_nsamples=(16, 32),
@@ -117,6 +107,10 @@ CONFIGS = {
         targets=RoITargetConfig(per_frame=128),
         output=OutputConfig(score="rcnn")),  # the stage-2 confidence alone, as OpenPCDet
 }
+# compact: 6 epochs from the run's SECOND (at SECOND's 0.2 m voxels from a 6-epoch SECOND val 93.2; cold at
+# 0.4 m 68.1 after 8 epochs and 78.8 after 16); kitti: OpenPCDet's pv_rcnn.yaml, OPTIMIZATION.LR 0.01. The RPN
+# is SECOND's anchor head (``head.`` in SECOND's checkpoint).
+RECIPE = Recipe(epochs={"compact": 6}, lr={"kitti": 0.01}, warm_from="second", warm_aliases=(("rpn.", "head."),))
 
 
 def level_centres(x: SparseTensor, grid: Grid) -> Tensor:
@@ -184,8 +178,8 @@ class PVRCNN(Detector):
         self.grid = cfg.grid_of_voxels
         self.vfe = MeanVFE()
         self.backbone3d = VoxelBackbone(MeanVFE.out_channels, cfg.backbone3d)
-        self.backbone2d, self.rpn = bev_stages(self.grid, cfg.backbone3d, cfg.pc_range, cfg.head, cfg.bev_layers,
-                                               cfg.bev_strides, cfg.bev_filters, cfg.bev_up_strides, cfg.bev_up_filters)
+        self.backbone2d, self.rpn = bev_stages(self.grid, cfg.backbone3d, cfg.pc_range, cfg.head, cfg.layers,
+                                               cfg.strides, cfg.filters, cfg.upsample_strides, cfg.upsample_filters)
         bev_channels = cfg.backbone3d.out_channels * output_shape(self.grid.shape, cfg.backbone3d)[0]
         channels = [cfg.backbone3d.stem_channels] + [s.channels for s in cfg.backbone3d.stages]
         self.vsa = VoxelSetAbstraction(cfg, [channels[i] for i in cfg.levels], bev_channels)

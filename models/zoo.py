@@ -36,20 +36,6 @@ from models.recipe import PROFILES, ModelRecipe, Recipe
 
 MODEL_NAMES = ("pointpillars", "second", "dv_second", "parta2", "pv_rcnn", "point_rcnn", "mvx_net")
 
-# Part-A2's and PV-RCNN's recipes until their modules carry them as ``RECIPE`` (OpenPCDet's parta2.yaml and
-# pv_rcnn.yaml: OPTIMIZATION.LR 0.01). Compact: 6 (PV-RCNN) and 8 (Part-A2) epochs from the run's SECOND:
-# PV-RCNN at SECOND's 0.2 m voxels from a 6-epoch SECOND reached val 93.2, cold at 0.4 m 68.1 after 8 epochs
-# and 78.8 after 16; Part-A2 at 12 epochs reached val 88.2 against 83.2, but its SOTIF headline fell from 74.0
-# to 71.0 with its proposals alone at 76.5 (its second stage no longer refining). Their RPN is SECOND's
-# anchor head (``head.`` in SECOND's checkpoint), and Part-A2's sparse U-Net encoder SECOND's 3D backbone.
-_HELD_RECIPES = {
-    "parta2": Recipe(epochs={"compact": 8}, lr={"kitti": 0.01}, warm_from="second",
-                     warm_aliases=(("rpn.", "head."), ("unet.encoder.", "backbone3d."))),
-    "pv_rcnn": Recipe(epochs={"compact": 6}, lr={"kitti": 0.01}, warm_from="second",
-                      warm_aliases=(("rpn.", "head."),)),
-}
-
-
 class CheckpointError(ValueError):
     """A checkpoint file that cannot be loaded (message names the file and the problem)."""
 
@@ -77,8 +63,7 @@ def build(name: str, profile: str = "compact") -> Detector:
 
 def recipe(name: str) -> Recipe:
     """The training recipe of a model (its module's ``RECIPE``)."""
-    module = _module(name)
-    return _HELD_RECIPES[name] if name in _HELD_RECIPES else module.RECIPE
+    return _module(name).RECIPE
 
 
 def resolve(name: str, profile: str = "compact", warm: bool = False) -> ModelRecipe:
