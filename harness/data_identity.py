@@ -66,7 +66,16 @@ def compare(run_dir: Path, sample_table: Path = SAMPLE_TABLE) -> list[str]:
     return out
 
 
-def note(run_dir: Path) -> str | None:
-    """The report's line on the data sets (None for a run that recorded none)."""
-    lines = compare(run_dir)
-    return " ".join(s[0].upper() + s[1:] for s in lines) or None
+def note(run_dir: Path, sample_table: Path = SAMPLE_TABLE) -> str | None:
+    """The report's line on the data sets, one clause each (None for a run that recorded none)."""
+    ours = _read(Path(run_dir) / TABLE)
+    if ours is None or ours.empty:
+        return None
+    sample = _read(sample_table)
+    theirs = {} if sample is None else dict(zip(sample["data_set"], sample["content_sha256"]))
+    status = lambda name, digest: ("" if sample is None else ", none in the sample" if name not in theirs
+                                   else ", the sample's" if theirs[name] == digest else ", not the sample's")
+    parts = [f"{r.data_set} {r.content_sha256[:16]} ({r.frames} frames{status(r.data_set, r.content_sha256)})"
+             for r in ours.itertuples()]
+    tail = "; the sample records no data set digests (made before they were recorded)" if sample is None else ""
+    return f"content SHA-256 of the data sets: {', '.join(parts)}{tail}."

@@ -59,3 +59,16 @@ def test_compare_with_the_sample(tmp_path):
     assert "the sample has no sweep set" in lines[2]
     assert all("no data set digests" in s for s in data_identity.compare(tmp_path / "run", tmp_path / "none.csv"))
     assert data_identity.compare(tmp_path / "empty") == []
+
+
+def test_the_report_line_names_each_set_once(tmp_path):
+    _run_with(tmp_path, {"sotif": "a" * 64, "train": "b" * 64})
+    sample = tmp_path / "sample.csv"
+    pd.DataFrame({"data_set": ["sotif", "train"], "frames": [3, 3], "content_sha256": ["a" * 64, "d" * 64]}).to_csv(
+        sample, index=False)
+    assert data_identity.note(tmp_path / "run", sample) == (
+        "content SHA-256 of the data sets: train bbbbbbbbbbbbbbbb (3 frames, not the sample's), "
+        "sotif aaaaaaaaaaaaaaaa (3 frames, the sample's).")
+    assert data_identity.note(tmp_path / "run", tmp_path / "none.csv").endswith(
+        "(3 frames); the sample records no data set digests (made before they were recorded).")
+    assert data_identity.note(tmp_path / "empty") is None
