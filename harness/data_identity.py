@@ -44,38 +44,41 @@ def _read(path: Path) -> pd.DataFrame | None:
     return df if set(COLUMNS) <= set(df.columns) else None
 
 
+def _matched(run_dir: Path, sample_table: Path) -> tuple[list[tuple], bool]:
+    """The run's data sets as (name, frames, digest, the sample's digest of that name or None), and whether
+    the sample records digests at all."""
+    ours, sample = _read(Path(run_dir) / TABLE), _read(sample_table)
+    theirs = {} if sample is None else dict(zip(sample["data_set"], sample["content_sha256"]))
+    rows = [] if ours is None else [(r.data_set, r.frames, r.content_sha256, theirs.get(r.data_set))
+                                    for r in ours.itertuples()]
+    return rows, sample is not None
+
+
 def compare(run_dir: Path, sample_table: Path = SAMPLE_TABLE) -> list[str]:
     """One sentence per data set of the run: its digest, and whether the sample's set of that name is the same."""
-    ours = _read(Path(run_dir) / TABLE)
-    if ours is None or ours.empty:
-        return []
-    sample = _read(sample_table)
-    theirs = {} if sample is None else dict(zip(sample["data_set"], sample["content_sha256"]))
+    rows, recorded = _matched(run_dir, sample_table)
     out = []
-    for r in ours.itertuples():
-        head = f"data set {r.data_set} ({r.frames} frames): content SHA-256 {r.content_sha256[:16]}"
-        if sample is None:
+    for name, frames, digest, theirs in rows:
+        head = f"data set {name} ({frames} frames): content SHA-256 {digest[:16]}"
+        if not recorded:
             out.append(f"{head}; the sample records no data set digests (made before they were recorded).")
-        elif r.data_set not in theirs:
-            out.append(f"{head}; the sample has no {r.data_set} set.")
-        elif theirs[r.data_set] == r.content_sha256:
+        elif theirs is None:
+            out.append(f"{head}; the sample has no {name} set.")
+        elif theirs == digest:
             out.append(f"{head}, the same bytes as the sample's.")
         else:
-            out.append(f"{head}; the sample's is {theirs[r.data_set][:16]}: another data set (another seed, "
+            out.append(f"{head}; the sample's is {theirs[:16]}: another data set (another seed, "
                        f"profile, generator or simulator code), so its numbers are not the sample's draw.")
     return out
 
 
 def note(run_dir: Path, sample_table: Path = SAMPLE_TABLE) -> str | None:
     """The report's line on the data sets, one clause each (None for a run that recorded none)."""
-    ours = _read(Path(run_dir) / TABLE)
-    if ours is None or ours.empty:
+    rows, recorded = _matched(run_dir, sample_table)
+    if not rows:
         return None
-    sample = _read(sample_table)
-    theirs = {} if sample is None else dict(zip(sample["data_set"], sample["content_sha256"]))
-    status = lambda name, digest: ("" if sample is None else ", none in the sample" if name not in theirs
-                                   else ", the sample's" if theirs[name] == digest else ", not the sample's")
-    parts = [f"{r.data_set} {r.content_sha256[:16]} ({r.frames} frames{status(r.data_set, r.content_sha256)})"
-             for r in ours.itertuples()]
-    tail = "; the sample records no data set digests (made before they were recorded)" if sample is None else ""
+    status = lambda digest, theirs: ("" if not recorded else ", none in the sample" if theirs is None
+                                     else ", the sample's" if theirs == digest else ", not the sample's")
+    parts = [f"{name} {digest[:16]} ({frames} frames{status(digest, theirs)})" for name, frames, digest, theirs in rows]
+    tail = "" if recorded else "; the sample records no data set digests (made before they were recorded)"
     return f"content SHA-256 of the data sets: {', '.join(parts)}{tail}."
