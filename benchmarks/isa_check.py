@@ -54,6 +54,20 @@ def _embree():
     return lib
 
 
+def ulp_noise(run, rng: np.random.Generator):
+    """``run`` (raycast's Embree call) with its tfar moved by up to 4 ulp and Ng by up to 1e-6 relative, as
+    other SIMD kernels give them."""
+    def noisy(scene, origins, dirs, max_t=1e37):
+        res = run(scene, origins, dirs, max_t)
+        hit = res["primID"] >= 0
+        t = res["tfar"].copy()
+        t[hit] += rng.integers(-4, 5, hit.sum()).astype(np.float32) * np.spacing(t[hit])
+        res["tfar"] = t
+        res["Ng"] = (res["Ng"] * (1 + rng.uniform(-1e-6, 1e-6, res["Ng"].shape))).astype(np.float32)
+        return res
+    return noisy
+
+
 def embree_cast(lib, isa: str, tris: np.ndarray, origin: np.ndarray, dirs: np.ndarray):
     """tfar (N,), Ng (N, 3), hit triangle (N,) (-1: miss) from an Embree device pinned to ``isa``."""
     dev = lib.rtcNewDevice(f"isa={isa},threads=1".encode())
@@ -115,13 +129,8 @@ def golden_as(cpu: str) -> None:
             "import simulator.raycast as rc\n"
             "from tests.simulator.test_golden import CASES, GOLDEN, digests\n"
             "from simulator import generate\n"
-            "run, rng = rc._run, np.random.default_rng(7)\n"
-            "def noisy(scene, o, d, max_t=1e37):\n"
-            "    res = run(scene, o, d, max_t); hit = res['primID'] >= 0; t = res['tfar'].copy()\n"
-            "    t[hit] += rng.integers(-4, 5, hit.sum()).astype(np.float32) * np.spacing(t[hit]); res['tfar'] = t\n"
-            "    res['Ng'] = (res['Ng'] * (1 + rng.uniform(-1e-6, 1e-6, res['Ng'].shape))).astype(np.float32)\n"
-            "    return res\n"
-            "rc._run = noisy\n"
+            "from benchmarks.isa_check import ulp_noise\n"
+            "rc._run = ulp_noise(rc._run, np.random.default_rng(7))\n"
             "for name, kw in sorted(CASES.items()):\n"
             "    kw = dict(kw, **({'instances': 1} if kw['preset'] == 'sotif' else {}))\n"
             "    got = digests(generate(Path(tempfile.mkdtemp()) / name, progress=False, **kw))\n"

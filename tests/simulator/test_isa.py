@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 import simulator.raycast as raycast
+from benchmarks.isa_check import ulp_noise
 from simulator import generate
 from tests.simulator.test_golden import digests
 
@@ -58,18 +59,7 @@ def test_cast_keeps_embree_triangle_and_recomputes_distance(highway_scene):
 @pytest.fixture
 def ulp_noise_embree(monkeypatch):
     """Embree's tfar moved by up to 4 ulp and Ng by 1e-6 relative, as other SIMD kernels give them."""
-    run, rng = raycast._run, np.random.default_rng(123)
-
-    def noisy(scene, origins, dirs, max_t=1e37):
-        res = run(scene, origins, dirs, max_t)
-        hit = res["primID"] >= 0
-        t = res["tfar"].copy()
-        t[hit] += rng.integers(-4, 5, hit.sum()).astype(np.float32) * np.spacing(t[hit])
-        res["tfar"] = t
-        res["Ng"] = (res["Ng"] * (1 + rng.uniform(-1e-6, 1e-6, res["Ng"].shape))).astype(np.float32)
-        return res
-
-    monkeypatch.setattr(raycast, "_run", noisy)
+    monkeypatch.setattr(raycast, "_run", ulp_noise(raycast._run, np.random.default_rng(123)))
 
 
 @pytest.mark.parametrize("kwargs", [dict(preset="train", frames=2, seed=5),
