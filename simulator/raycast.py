@@ -193,7 +193,7 @@ class RayScene:
                         np.array([np.linalg.norm(t.reshape(-1, 3) - t.reshape(-1, 3).mean(0), axis=1).max() + 0.01
                                   for t in tris]))
         if not tris:
-            self._dynamic = None
+            self._dynamic, self._dynamic_triangles = None, np.zeros((0, 3, 3), np.float32)
             self.dyn_material, self.dyn_actor = np.zeros(1, np.int64), np.zeros(1, np.int64)
         else:
             self._dynamic_triangles = np.ascontiguousarray(np.concatenate(tris), dtype=np.float32)
@@ -225,8 +225,9 @@ class RayScene:
 
     def cast_parts(self, origins32: np.ndarray, dirs32: np.ndarray, near: np.ndarray,
                    max_t: float = 1e37) -> tuple[dict, dict]:
-        """Raw Embree results (float32 (N, 3) origins and dirs, hits up to max_t): the static world
-        for all rays and the vehicles for the rays `near` (sorted indices) only."""
+        """Embree's hits, their distances and normals recomputed from the hit triangles (``_exact_run``;
+        float32 (N, 3) origins and dirs, hits up to max_t): the static world for all rays and the
+        vehicles for the rays `near` (sorted indices) only."""
         st = _exact_run(self._static, self.world.triangles, origins32, dirs32, max_t)
         if self._dynamic is None or len(near) == 0:
             return st, {"tfar": np.zeros(0, np.float32), "primID": np.zeros(0, np.int32),
