@@ -1,9 +1,12 @@
 """Traffic: the SOTIF cut-out scenario and randomised training scenes.
 
 SOTIF scenario (Patel & Jung 2024): the ego drives in lane 3 at 90 km/h behind a fast car
-(ACC gap keeping); a slow car drives at 60 km/h ahead in the same lane. When the fast car is
-10 m (bumper to bumper) behind the slow car it changes to lane 4; the ego's ACC then takes
-the slow car as its target and decelerates. 10 Hz simulation, every 5th step recorded.
+(ACC gap keeping); a slow car drives at 60 km/h ahead in the same lane. The fast car changes to
+lane 4 and leaves the slow car's lane 10 m (bumper to bumper) behind it: its lane change starts
+early enough that its body is clear of the slow car's (``CLEARANCE_M`` apart sideways) when the
+gap is down to ``trigger_gap``, so the two never touch whatever the closing speed. The ego's ACC
+then takes the slow car as its target and decelerates. 10 Hz simulation, every 5th step recorded
+(scenario sets record every step through the decision window).
 
 Training scenes never reproduce it: they are independent snapshots of random traffic (their
 own random streams and world clutter), not the scripted cut-out with its fixed cars.
@@ -27,7 +30,7 @@ class SotifConfig:
     ego_lane: int = 3
     ego_speed: float = 25.0  # m/s (90 km/h)
     slow_speed: float = 60.0 / 3.6  # m/s
-    trigger_gap: float = 10.0  # m bumper to bumper, fast car behind slow car
+    trigger_gap: float = 10.0  # m bumper to bumper, fast car behind slow car, when the fast car clears its lane
     lane_change_duration: float = 3.5  # s
     time_to_trigger: float = 1.0  # s after the first recorded frame
     start_s: float = 140.0  # m, ego position at t = 0
@@ -62,10 +65,28 @@ def _acc(gap: float, v: float, v_lead: float, sc: SotifConfig) -> float:
     return float(np.clip(0.2 * (gap - desired) + 0.9 * (v_lead - v), -6.0, 1.5))
 
 
+CLEARANCE_M = 0.25  # m side to side between the fast car and the slow car when the fast car is out of its way
+
+
 def _quintic(tau: float) -> tuple[float, float]:
     """Smooth 0 -> 1 lane-change profile and its derivative in tau."""
     tau = min(max(tau, 0.0), 1.0)
     return 10 * tau**3 - 15 * tau**4 + 6 * tau**5, 30 * tau**2 - 60 * tau**3 + 30 * tau**4
+
+
+def clear_time_s(sc: SotifConfig, lane_width: float, slow_offset: float = 0.0) -> float:
+    """Seconds from the start of the fast car's lane change until its body is ``CLEARANCE_M`` to the side of
+    the slow car's (the slow car ``slow_offset`` m left of its lane centre; the fast car moves left by one
+    ``lane_width`` along the quintic profile)."""
+    need = (slow_offset + (sc.fast_body[1][1] + sc.slow_body[1][1]) / 2 + CLEARANCE_M) / lane_width
+    if need >= 1.0:
+        raise ValueError(f"the fast car cannot clear a slow car {slow_offset} m off its lane centre in a "
+                         f"{lane_width} m lane")
+    lo, hi = 0.0, 1.0
+    for _ in range(60):  # the profile rises monotonically over [0, 1]
+        mid = (lo + hi) / 2
+        lo, hi = (mid, hi) if _quintic(mid)[0] < need else (lo, mid)
+    return hi * sc.lane_change_duration
 
 
 def _background(sc: SotifConfig, rng: np.random.Generator) -> list[tuple]:
@@ -88,13 +109,16 @@ def sotif_run(road: RoadConfig, frames: int, rng: np.random.Generator, sc: Sotif
     gap0 = sc.acc_standstill + sc.acc_time_gap * sc.ego_speed
     s_e, v_e = sc.start_s, sc.ego_speed
     s_f = s_e + gap0 + (EGO_DIMS[0] + l_f) / 2
-    s_s = s_f + (l_f + l_s) / 2 + sc.trigger_gap + (sc.ego_speed - sc.slow_speed) * sc.time_to_trigger
+    # the gap at which the lane change starts: trigger_gap once the fast car is clear of the slow car
+    t_clear = clear_time_s(sc, d4 - d3, slow_offset)
+    start_gap = sc.trigger_gap + (sc.ego_speed - sc.slow_speed) * t_clear
+    s_s = s_f + (l_f + l_s) / 2 + start_gap + (sc.ego_speed - sc.slow_speed) * sc.time_to_trigger
     bg = _background(sc, rng)
     t_lc = None
     out = []
     for step in range(frames * sc.record_every):
         t = step * sc.dt
-        if t_lc is None and s_s - s_f - (l_s + l_f) / 2 <= sc.trigger_gap:
+        if t_lc is None and s_s - s_f - (l_s + l_f) / 2 <= start_gap + 1e-9:
             t_lc = t
         lam, dlam = _quintic((t - t_lc) / sc.lane_change_duration) if t_lc is not None else (0.0, 0.0)
         d_f = d3 + (d4 - d3) * lam
@@ -111,6 +135,7 @@ def sotif_run(road: RoadConfig, frames: int, rng: np.random.Generator, sc: Sotif
         s_s += sc.slow_speed * sc.dt
     for st in out:
         st.info["lane_change_time_s"] = float("nan") if t_lc is None else t_lc
+        st.info["cutout_time_s"] = float("nan") if t_lc is None else t_lc + t_clear
     return out
 
 
@@ -145,19 +170,22 @@ def instance_steps(states: list[FrameState], sc: SotifConfig, lead_in: int, slac
     """(step, in the decision window) of the frames an instance records, from its run at every step (states[k] at
     step k): ``lead_in`` frames every ``sc.record_every``-th step before the lane change; then every step (the
     LiDAR's 10 Hz) from the lane change through the decision window (window_length_s of the gap, front bumper to
-    rear face, and the closing speed at the lane change) plus ``slack_s``, at most ``window_max_s``."""
+    rear face, and the closing speed at the lane change) plus ``slack_s``, at most ``window_max_s`` after the
+    cut-out (the fast car clear of the slow car)."""
     step_lc = int(round(states[0].info["lane_change_time_s"] / sc.dt))
     st = states[step_lc]
     gap = st.info["slow_car_distance_m"] - (sc.slow_body[1][0] + EGO_DIMS[0]) / 2
-    end_s = min(window_length_s(gap, st.ego_speed - sc.slow_speed) + slack_s, window_max_s)
+    clear_s = states[0].info["cutout_time_s"] - states[0].info["lane_change_time_s"]
+    end_s = min(window_length_s(gap, st.ego_speed - sc.slow_speed) + slack_s, clear_s + window_max_s)
     last = step_lc + int(round(end_s / sc.dt))
     lead = [(step_lc - k * sc.record_every, False) for k in range(lead_in, 0, -1) if step_lc >= k * sc.record_every]
     return lead + [(k, True) for k in range(step_lc, last + 1)]
 
 
 def run_steps(sc: SotifConfig, window_max_s: float, slack_s: float) -> int:
-    """Steps an instance's run needs (every step simulated): to its lane change, its longest window and slack."""
-    return int(math.ceil((sc.time_to_trigger + window_max_s + slack_s) / sc.dt)) + 2
+    """Steps an instance's run needs (every step simulated): to its lane change, its cut-out (at most the whole
+    lane change), its longest window and slack."""
+    return int(math.ceil((sc.time_to_trigger + sc.lane_change_duration + window_max_s + slack_s) / sc.dt)) + 2
 
 
 @dataclass(frozen=True)

@@ -54,7 +54,7 @@ class ScenarioSpace:
     val_share: float = 0.1  # instances per weather in the val split (never instance 0)
     lead_in_frames: int = 2  # 2 Hz frames before the lane change
     window_slack_s: float = 0.3  # recorded (at 10 Hz) past the latest moment a confirmation can still pass
-    window_max_s: float = 7.5  # nothing recorded later than this after the lane change (the study's window: 7.2 s)
+    window_max_s: float = 7.5  # nothing recorded later than this after the cut-out (the study's window: 7.2 s)
     sweep: bool = False
     probes: tuple = ()  # a bounds set's probes (simulator.bounds.Probe), one instance each; () otherwise
 

@@ -78,10 +78,45 @@ def test_sotif_scenario_kinematics():
         if f.time_s >= t_lc + sc.lane_change_duration:
             assert _lateral(fast.x, fast.y) == pytest.approx(lane_center(ROAD, sc.ego_lane + 1), abs=0.02)
     speeds = [f.ego_speed for f in frames]
-    assert speeds[0] == sc.ego_speed and speeds[-1] < sc.slow_speed + 0.5
+    assert speeds[0] == sc.ego_speed and speeds[-1] < sc.slow_speed + 1.0
     assert all(a >= b - 1e-9 for a, b in zip(speeds, speeds[1:]))
     dist = [f.info["slow_car_distance_m"] for f in frames]
-    assert 40 < min(dist) and max(dist) < 90
+    assert 40 < min(dist) and max(dist) < 100  # about 80 m at the cut-out
+
+
+def _footprint(v):
+    from shapely.geometry import Polygon
+    c, s_ = np.cos(v.heading), np.sin(v.heading)
+    l, w = v.dims[0] / 2, v.dims[1] / 2
+    return Polygon([(v.x + c * a - s_ * b, v.y + s_ * a + c * b) for a, b in ((l, w), (-l, w), (-l, -w), (l, -w))])
+
+
+def test_the_fast_car_never_touches_the_slow_car_and_clears_it_at_the_cutout_gap():
+    """Over the scenario space's corners (short gap, high closing speed, slow lane change, slow car offset
+    towards the fast car's lane), the two bodies never overlap; once the fast car is CLEARANCE_M to the side of
+    the slow car the bumper gap is the instance's cut-out gap (within one step's closing)."""
+    from dataclasses import replace
+
+    from simulator.scenario import CLEARANCE_M
+    from simulator.space import STUDY
+    cases = [(STUDY, 0.0), (replace(STUDY, ego_speed_kmh=130.0, slow_speed_kmh=30.0, cutout_gap_m=5.0,
+                                    lane_change_s=5.0, slow_body="truck"), 0.5),
+             (replace(STUDY, ego_speed_kmh=120.0, cutout_gap_m=5.0, lane_change_s=2.5, fast_body="van"), -0.5)]
+    for inst, offset in cases:
+        sc = replace(inst.sotif_config(), record_every=1)
+        run = sotif_run(ROAD, 80, np.random.default_rng(0), sc, slow_offset=offset)
+        closing = sc.ego_speed - sc.slow_speed
+        cleared = None
+        for f in run:
+            slow, fast = _footprint(f.vehicles[0]), _footprint(f.vehicles[1])
+            assert slow.intersection(fast).area == 0.0, (inst, f.time_s)
+            side = abs(_lateral(f.vehicles[1].x, f.vehicles[1].y) - _lateral(f.vehicles[0].x, f.vehicles[0].y))
+            if cleared is None and side >= (f.vehicles[0].dims[1] + f.vehicles[1].dims[1]) / 2 + CLEARANCE_M:
+                cleared = f
+        assert cleared is not None
+        gap = np.hypot(cleared.vehicles[0].x - cleared.vehicles[1].x, cleared.vehicles[0].y - cleared.vehicles[1].y) \
+            - (cleared.vehicles[0].dims[0] + cleared.vehicles[1].dims[0]) / 2
+        assert sc.trigger_gap - closing * sc.dt - 0.05 <= gap <= sc.trigger_gap + 0.05
 
 
 def test_training_scenes_do_not_overlap():

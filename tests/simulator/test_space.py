@@ -83,15 +83,16 @@ def test_instance_steps_window_is_at_10_hz():
     run = sotif_run(ROAD, 100, np.random.default_rng(0), SotifConfig(record_every=1))
     k_lc = int(round(run[0].info["lane_change_time_s"] / sc.dt))
     gap = run[k_lc].info["slow_car_distance_m"] - (sc.slow_body[1][0] + EGO_DIMS[0]) / 2
-    end_s = window_length_s(gap, run[k_lc].ego_speed - sc.slow_speed) + 0.3  # the study's: 6.9 s + slack
+    end_s = window_length_s(gap, run[k_lc].ego_speed - sc.slow_speed) + 0.3  # the study's: 8.8 s + slack
+    clear_s = run[0].info["cutout_time_s"] - run[0].info["lane_change_time_s"]  # the cut-out 1.7 s later
     steps = instance_steps(run, sc, lead_in=2, slack_s=0.3, window_max_s=7.5)
     lead = [k for k, w in steps if k < k_lc]
     window = [k for k, w in steps if w]
     assert lead == [k_lc - 10, k_lc - 5] and window[0] == k_lc and np.all(np.diff(window) == 1)
     assert [k for k, w in steps if not w] == lead  # no 2 Hz tail
-    assert 7.0 < end_s < 7.5 and window[-1] == k_lc + round(end_s / sc.dt)
+    assert 1.5 < clear_s < 2.0 and 8.5 < end_s < clear_s + 7.5 and window[-1] == k_lc + round(end_s / sc.dt)
     capped = instance_steps(run, sc, lead_in=2, slack_s=0.3, window_max_s=2.5)
-    assert [k for k, w in capped if w][-1] == k_lc + 25
+    assert [k for k, w in capped if w][-1] == k_lc + round((clear_s + 2.5) / sc.dt)
 
 
 def test_window_length_is_the_latest_passing_confirmation():
