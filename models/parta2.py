@@ -27,7 +27,7 @@ from torch import Tensor, nn
 from harness.core.types import Sample
 from models.anchor_head import HeadConfig
 from models.base import Detector, mean_over_frames
-from models.box_frame import inside_local, to_box_frame
+from models.box_frame import inside_boxes, inside_local, to_box_frame
 from models.losses import sigmoid_focal_loss
 from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITargetConfig,
                              finalize, propose, refine_loss, roi_support, sample_rois)
@@ -194,24 +194,27 @@ def point_head(c: int, out: int, hidden: bool) -> nn.Sequential:
     return nn.Sequential(*([nn.Linear(c, c), nn.ReLU()] if hidden else []), nn.Linear(c, out))
 
 
-def part_targets(xyz: Tensor, gt: Tensor, margin: float) -> tuple[Tensor, Tensor, Tensor]:
+def part_targets(xyz: Tensor, gt: Tensor, others: Tensor, margin: float) -> tuple[Tensor, Tensor, Tensor]:
     """Foreground and intra-object part location of every voxel centre.
 
-    xyz (V, 3), gt (G, 7). Returns fg (V,) float 0/1 (inside a GT box), ignore (V,) bool
-    (outside every box but inside one enlarged by ``margin`` metres) and part (V, 3): the
-    position inside the containing box as fractions of (l, w, h) in [0, 1] (0 for background).
+    xyz (V, 3), gt (G, 7) Car boxes, others (J, 7) ignored boxes (Van, Truck, DontCare). Returns fg (V,)
+    float 0/1 (inside a Car box), ignore (V,) bool (outside every Car box but inside a Car or an ignored
+    box enlarged by ``margin`` metres: no seg loss) and part (V, 3): the position inside the containing
+    Car box as fractions of (l, w, h) in [0, 1] (0 outside: no part loss).
     """
+    n = xyz.shape[0]
+    near_other = inside_boxes(xyz, others, 2 * margin).any(0)  # (V,) a truck's or van's voxels: not background
     if gt.shape[0] == 0:
-        zeros = xyz.new_zeros(xyz.shape[0])
-        return zeros, zeros.bool(), xyz.new_zeros(xyz.shape[0], 3)
+        zeros = xyz.new_zeros(n)
+        return zeros, near_other, xyz.new_zeros(n, 3)
     local = to_box_frame(xyz, gt)  # (G, V, 3)
     inside = inside_local(local, gt)  # (G, V)
     near = inside_local(local, gt, 2 * margin)  # (G, V)
     fg = inside.any(0)  # (V,)
     owner = inside.float().argmax(0)  # (V,) first containing box
     frac = local / gt[:, None, 3:6] + 0.5  # (G, V, 3)
-    part = frac[owner, torch.arange(xyz.shape[0])] * fg[:, None]  # (V, 3)
-    return fg.float(), near.any(0) & ~fg, part.clamp(0.0, 1.0)
+    part = frac[owner, torch.arange(n)] * fg[:, None]  # (V, 3)
+    return fg.float(), (near.any(0) | near_other) & ~fg, part.clamp(0.0, 1.0)
 
 
 def roi_sparse_grid(pooled: Tensor, occupied: Tensor) -> SparseTensor:
@@ -329,7 +332,7 @@ class PartA2(Detector):
         points, gt, ignore = frame_targets(sample, device)
         xyz, feats, seg, part, bev = self.stage1(points)
         losses = dict(self.rpn.loss(bev, gt, ignore))
-        fg, ignored, part_t = part_targets(xyz, gt, self.cfg.part_margin)
+        fg, ignored, part_t = part_targets(xyz, gt, ignore, self.cfg.part_margin)
         weights = (~ignored).to(seg.dtype)
         num_fg = fg.sum().clamp(min=1.0)
         losses["seg"] = sigmoid_focal_loss(seg, fg, weights) / num_fg
@@ -338,8 +341,8 @@ class PartA2(Detector):
                           if bool(on.any()) else part.sum() * 0.0)
         with torch.no_grad():
             rois, _, _ = propose(self.rpn, bev, self.cfg.proposals_train)
-        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng)
-        targets.rois, targets.iou, targets.gt = (t.to(device) for t in (targets.rois, targets.iou, targets.gt))
+        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng,
+                              ignore.cpu().numpy()).to(device)
         # the seg score enters stage 2 detached, the part locations not (as OpenPCDet)
         logit, deltas = self.rcnn(targets.rois, xyz, feats, torch.sigmoid(seg).detach(), torch.sigmoid(part))
         losses.update(refine_loss(logit, deltas, targets, self.cfg.targets))

@@ -32,11 +32,11 @@ from models.recipe import Recipe
 from models.roi_head import (
     RefineHead,
     RoITargetConfig,
-    RoITargets,
     decode_canonical,
     refine_loss,
     sample_rois,
 )
+from models.single_stage import frame_targets
 from models.voxelize import range_mask
 
 
@@ -365,7 +365,8 @@ class PointRCNN(Detector):
     # ---- training ----------------------------------------------------------------------------
 
     def seg_targets(self, xyz: Tensor, cars: Tensor, others: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        """fg (n0,) bool, weight (n0,) 0 for ignored points, matched car box per point (n0, 7)."""
+        """fg (n0,) bool, weight (n0,) 0 for ignored points (outside every car box but near one, or inside
+        an ignored box ``others``), matched car box per point (n0, 7)."""
         inside = inside_boxes(xyz, cars)  # (G, n0)
         near = inside_boxes(xyz, cars, self.cfg.seg_ignore_margin).any(0) | inside_boxes(xyz, others).any(0)
         fg = inside.any(0)
@@ -376,9 +377,8 @@ class PointRCNN(Detector):
     def frame_loss(self, sample: Sample) -> dict[str, Tensor]:
         device = next(self.parameters()).device
         salt = int(self.sampling_rng.integers(_HASH_MOD))  # a fresh draw of the near points per step
-        pts, _ = self.points_of_interest(torch.as_tensor(sample.points, device=device), salt)
-        cars = torch.as_tensor(sample.boxes_of("Car"), device=device)
-        others = torch.as_tensor(sample.gt_boxes[sample.gt_names != "Car"].astype(np.float32), device=device)
+        points, cars, others = frame_targets(sample, device)  # others: the ignored boxes (Van, Truck, DontCare)
+        pts, _ = self.points_of_interest(points, salt)
         feats, seg, box = self.stage_one(pts)
         fg, weight, match = self.seg_targets(pts[:, :3], cars, others)
         p = torch.sigmoid(seg)
@@ -392,8 +392,8 @@ class PointRCNN(Detector):
             out["rpn_box"] = box.sum() * 0.0
         with torch.no_grad():
             rois, _, valid = self.propose(pts, seg, box)
-        targets = sample_rois(rois[valid].cpu().numpy(), cars.cpu().numpy(), self.cfg.targets, self.sampling_rng)
-        targets = RoITargets(targets.rois.to(device), targets.iou.to(device), targets.gt.to(device))
+        targets = sample_rois(rois[valid].cpu().numpy(), cars.cpu().numpy(), self.cfg.targets, self.sampling_rng,
+                              others.cpu().numpy()).to(device)
         logit, deltas = self.refine(pts, feats, seg, targets.rois, torch.ones_like(targets.iou, dtype=torch.bool))
         out.update(refine_loss(logit, deltas, targets, self.cfg.targets))
         return out

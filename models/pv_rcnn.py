@@ -161,11 +161,13 @@ class VoxelSetAbstraction(nn.Module):
         return bilinear_sample(bev, torch.stack([u, v], 1), inside, (h, w))
 
 
-def keypoint_targets(keypoints: Tensor, gt: Tensor, margin: float) -> Tensor:
-    """(P,) float 1 where the keypoint lies inside a GT box enlarged by ``margin`` metres."""
-    if gt.shape[0] == 0:
-        return keypoints.new_zeros(keypoints.shape[0])
-    return inside_boxes(keypoints, gt, 2 * margin).any(0).float()
+def keypoint_targets(keypoints: Tensor, gt: Tensor, others: Tensor, margin: float) -> tuple[Tensor, Tensor]:
+    """Foreground (P,) float 1 where the keypoint lies inside a Car box gt (G, 7) enlarged by ``margin``
+    metres, and weight (P,) float 0 where it lies, not foreground, inside an ignored box others (J, 7)
+    (Van, Truck, DontCare) enlarged alike: a truck's keypoints are not background."""
+    fg = inside_boxes(keypoints, gt, 2 * margin).any(0)  # (P,)
+    ignored = inside_boxes(keypoints, others, 2 * margin).any(0) & ~fg
+    return fg.float(), (~ignored).float()
 
 
 class PVRCNN(Detector):
@@ -218,12 +220,12 @@ class PVRCNN(Detector):
         points, gt, ignore = frame_targets(sample, device)
         keypoints, kp_feats, kp_logit, bev, _ = self.stage1(points)
         losses = dict(self.rpn.loss(bev, gt, ignore))
-        kp_fg = keypoint_targets(keypoints, gt, self.cfg.kp_margin)
-        losses["keypoint"] = sigmoid_focal_loss(kp_logit, kp_fg, torch.ones_like(kp_fg)) / kp_fg.sum().clamp(min=1.0)
+        kp_fg, kp_weight = keypoint_targets(keypoints, gt, ignore, self.cfg.kp_margin)
+        losses["keypoint"] = sigmoid_focal_loss(kp_logit, kp_fg, kp_weight) / kp_fg.sum().clamp(min=1.0)
         with torch.no_grad():
             rois, _, _ = propose(self.rpn, bev, self.cfg.proposals_train)
-        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng)
-        targets.rois, targets.iou, targets.gt = (t.to(device) for t in (targets.rois, targets.iou, targets.gt))
+        targets = sample_rois(rois.cpu().numpy(), gt.cpu().numpy(), self.cfg.targets, self.sampling_rng,
+                              ignore.cpu().numpy()).to(device)
         losses.update(refine_loss(*self.stage2(targets.rois, keypoints, kp_feats), targets, self.cfg.targets))
         c = self.cfg
         losses["loss"] = (losses["loss"] + c.weight_kp * losses["keypoint"]

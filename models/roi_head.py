@@ -1,7 +1,7 @@
 """Shared second-stage pieces of the two-stage detectors (Part-A2, PV-RCNN).
 
 - ``sample_rois``: RoI target assignment by rotated 3D IoU with the ground truth and fg/bg
-  sampling (training only, numpy, outside any exported graph).
+  sampling, RoIs on an ignored box (``on_ignored``) left out (training only, outside any exported graph).
 - ``encode_canonical`` / ``decode_canonical``: residuals of a box in its RoI's canonical frame
   (centre at the origin, heading along +x), normalised like the residual box coder.
 - ``RefineHead``: shared MLP, then a confidence branch and a residual branch.
@@ -25,6 +25,7 @@ from torch import Tensor, nn
 from harness.core.boxes import iou_3d
 from models.anchor_head import AnchorHead
 from models.box_frame import inside_boxes, rotate_to_box_frame
+from models.iou import ioa_bev_sparse
 from models.nms import ranked_selection
 from models.pointnet2 import PointBatchNorm
 
@@ -50,11 +51,21 @@ class RoITargetConfig:
             raise ValueError(f"score_type must be 'roi_iou' or 'cls', got {self.score_type!r}")
 
 
+# a RoI with at least this share of its BEV area inside an ignored box (Van, Truck, DontCare) is ignored
+# by the confidence loss unless it is foreground: by area, as the anchor head (``assign_targets``), since
+# a car-sized RoI on a truck's rear has 3D IoU <= 0.1 with the truck and would never reach an IoU threshold
+IGNORE_IOA = 0.5
+
+
 @dataclass
 class RoITargets:
     rois: Tensor  # (S, 7) sampled RoIs, LiDAR frame
     iou: Tensor  # (S,) best 3D IoU with a GT box
     gt: Tensor  # (S, 7) the matched GT box (meaningful where iou >= fg_iou)
+    weight: Tensor  # (S,) of the confidence loss: 1, or 0 for a RoI on an ignored box (``on_ignored``)
+
+    def to(self, device) -> "RoITargets":
+        return RoITargets(self.rois.to(device), self.iou.to(device), self.gt.to(device), self.weight.to(device))
 
 
 def jitter_boxes(gt: np.ndarray, copies: int, cfg: RoITargetConfig,
@@ -67,17 +78,28 @@ def jitter_boxes(gt: np.ndarray, copies: int, cfg: RoITargetConfig,
     return boxes.astype(np.float32)
 
 
+def on_ignored(rois: np.ndarray, ignore: np.ndarray) -> np.ndarray:
+    """(K,) bool: at least ``IGNORE_IOA`` of the RoI's (K, 7) BEV area lies inside one ignored box (J, 7)."""
+    if not (len(rois) and len(ignore)):
+        return np.zeros(len(rois), bool)
+    ioa = ioa_bev_sparse(torch.from_numpy(rois.astype(np.float32)), torch.from_numpy(ignore.astype(np.float32)))
+    return (ioa.max(dim=1).values >= IGNORE_IOA).numpy()  # (K,)
+
+
 def sample_rois(rois: np.ndarray, gt: np.ndarray, cfg: RoITargetConfig,
-                rng: np.random.Generator) -> RoITargets:
+                rng: np.random.Generator, ignore: np.ndarray | None = None) -> RoITargets:
     """Label proposals by IoU with the GT and draw ``cfg.per_frame`` of them, as OpenPCDet's
     ``ProposalTargetLayer.subsample_rois``.
 
-    rois (K, 7), gt (G, 7) LiDAR frame. Foreground: IoU >= min(fg_iou, score_hi), at most
-    ``fg_fraction`` of the draw, without replacement. The rest is background (IoU < fg_iou):
+    rois (K, 7), gt (G, 7) Car boxes, ignore (J, 7) ignored boxes (Van, Truck, DontCare), LiDAR frame.
+    Foreground: IoU >= min(fg_iou, score_hi), at most ``fg_fraction`` of the draw, without replacement.
+    A RoI on an ignored box (:func:`on_ignored`) that is not foreground is neither foreground nor
+    background: it is not drawn. The rest is background (IoU < fg_iou):
     ``hard_bg_ratio`` of it from the hard one (IoU in [easy_bg_iou, fg_iou)), which teaches the
     confidence the IoUs between a miss and a hit, and the remainder from the easy one; both
     drawn with replacement, and from one alone when the other is empty. Without any
-    background, the draw is foreground with replacement.
+    background, the draw is foreground with replacement; with neither, the ignored RoIs with
+    replacement, at confidence weight 0 (stage 2 still sees ``per_frame`` RoIs).
     """
     rois = np.concatenate([rois.reshape(-1, 7), jitter_boxes(gt, cfg.gt_jitter, cfg, rng)])
     if len(gt):
@@ -88,11 +110,14 @@ def sample_rois(rois: np.ndarray, gt: np.ndarray, cfg: RoITargetConfig,
     else:
         iou = np.zeros(len(rois))
         matched = np.zeros((len(rois), 7), np.float32)
-    fg = np.flatnonzero(iou >= min(cfg.fg_iou, cfg.score_hi))
-    easy = np.flatnonzero(iou < cfg.easy_bg_iou)
-    hard = np.flatnonzero((iou >= cfg.easy_bg_iou) & (iou < cfg.fg_iou))
-    if len(easy) + len(hard) == 0:  # nothing but foreground (or no RoI at all)
-        keep = fg[rng.integers(0, len(fg), cfg.per_frame)] if len(fg) else fg
+    is_fg = iou >= min(cfg.fg_iou, cfg.score_hi)
+    ignored = on_ignored(rois, np.zeros((0, 7)) if ignore is None else ignore) & ~is_fg  # (K',)
+    fg = np.flatnonzero(is_fg)
+    easy = np.flatnonzero((iou < cfg.easy_bg_iou) & ~ignored)
+    hard = np.flatnonzero((iou >= cfg.easy_bg_iou) & (iou < cfg.fg_iou) & ~ignored)
+    if len(easy) + len(hard) == 0:  # nothing but foreground or ignored RoIs (or no RoI at all)
+        pool = fg if len(fg) else np.flatnonzero(ignored)
+        keep = pool[rng.integers(0, len(pool), cfg.per_frame)] if len(pool) else pool
     else:
         n_fg = min(int(round(cfg.per_frame * cfg.fg_fraction)), len(fg))
         n_bg = cfg.per_frame - n_fg
@@ -107,7 +132,8 @@ def sample_rois(rois: np.ndarray, gt: np.ndarray, cfg: RoITargetConfig,
     keep = keep.astype(np.int64)
     return RoITargets(rois=torch.from_numpy(rois[keep].astype(np.float32)),
                       iou=torch.from_numpy(iou[keep].astype(np.float32)),
-                      gt=torch.from_numpy(matched[keep].astype(np.float32)))
+                      gt=torch.from_numpy(matched[keep].astype(np.float32)),
+                      weight=torch.from_numpy((~ignored[keep]).astype(np.float32)))
 
 
 def wrap(angle: Tensor) -> Tensor:
@@ -211,21 +237,25 @@ def iou_score_target(iou: Tensor, cfg: RoITargetConfig) -> Tensor:
     return ((iou - cfg.score_lo) / (cfg.score_hi - cfg.score_lo)).clamp(0.0, 1.0)
 
 
-def score_loss(logit: Tensor, iou: Tensor, cfg: RoITargetConfig) -> Tensor:
+def score_loss(logit: Tensor, iou: Tensor, cfg: RoITargetConfig, weight: Tensor | None = None) -> Tensor:
     """Binary cross-entropy of the confidence logits (S,) against the RoIs' IoU (S,): the
     IoU-guided ramp (``roi_iou``), or car (IoU > score_hi) / background (IoU < score_lo) with
-    the RoIs between ignored (``cls``); the mean over the RoIs that count."""
+    the RoIs between ignored (``cls``); the mean over the RoIs that count. ``weight`` (S,) 0 / 1
+    (:class:`RoITargets`; None: all 1) leaves the RoIs on an ignored box out."""
+    weight = torch.ones_like(logit) if weight is None else weight
     if cfg.score_type == "roi_iou":
-        return F.binary_cross_entropy_with_logits(logit, iou_score_target(iou, cfg))
-    counted = (iou > cfg.score_hi) | (iou < cfg.score_lo)
-    loss = F.binary_cross_entropy_with_logits(logit, (iou > cfg.score_hi).to(logit.dtype), reduction="none")
-    return (loss * counted).sum() / counted.sum().clamp(min=1)
+        target = iou_score_target(iou, cfg)
+    else:
+        target = (iou > cfg.score_hi).to(logit.dtype)
+        weight = weight * ((iou > cfg.score_hi) | (iou < cfg.score_lo)).to(logit.dtype)
+    loss = F.binary_cross_entropy_with_logits(logit, target, reduction="none")  # (S,)
+    return (loss * weight).sum() / weight.sum().clamp(min=1)
 
 
 def refine_loss(logit: Tensor, deltas: Tensor, targets: RoITargets,
                 cfg: RoITargetConfig) -> dict[str, Tensor]:
     """Stage-2 losses on S sampled RoIs: logit (S,), deltas (S, 7)."""
-    score = score_loss(logit, targets.iou, cfg)
+    score = score_loss(logit, targets.iou, cfg, targets.weight)
     fg = targets.iou >= cfg.fg_iou  # (S,)
     if bool(fg.any()):
         rois, gt = targets.rois[fg], targets.gt[fg]

@@ -1,5 +1,5 @@
-"""Part-A2 tiny profile: part targets against a brute-force reference, output shapes, loss falls,
-onnxruntime == torch on random, tiny and empty clouds."""
+"""Part-A2 tiny profile: part targets against a brute-force reference (voxels on ignored boxes left out),
+output shapes, loss falls, onnxruntime == torch on random, tiny and empty clouds."""
 from __future__ import annotations
 
 import numpy as np
@@ -17,7 +17,7 @@ def test_part_targets_match_reference():
                   np.float32)
     xyz = rng.uniform(-6, 6, (3000, 3)).astype(np.float32)
     xyz[:, 2] = rng.uniform(-1.5, 1.5, 3000)
-    fg, ignore, part = part_targets(torch.from_numpy(xyz), torch.from_numpy(gt), 0.3)
+    fg, ignore, part = part_targets(torch.from_numpy(xyz), torch.from_numpy(gt), torch.zeros(0, 7), 0.3)
     inside = points_in_boxes(xyz, gt)  # (V, G)
     grown = gt.copy()
     grown[:, 3:6] += 0.6
@@ -32,6 +32,32 @@ def test_part_targets_match_reference():
         local = np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1], d[2]])
         np.testing.assert_allclose(part[v].numpy(), local / b[3:6] + 0.5, atol=1e-5)
     assert not part.numpy()[~inside.any(1)].any()
+
+
+def test_voxels_on_an_ignored_box_have_no_seg_or_part_loss():
+    """A voxel inside a truck or van box (or within the margin of one) is neither foreground nor
+    background: seg weight 0, no part target; one inside a car inside a DontCare region stays a car's;
+    the cars' targets are those without ignored boxes."""
+    rng = np.random.default_rng(1)
+    gt = np.array([[2.0, 1.0, -0.9, 4.0, 1.8, 1.5, 0.4], [-12.0, 3.0, -0.9, 4.2, 1.7, 1.5, 0.1]], np.float32)
+    others = np.array([[-4.0, -3.0, 0.0, 11.5, 2.55, 3.8, -0.3],  # truck
+                       [-12.0, 3.0, -0.5, 8.0, 4.0, 3.0, 0.0]], np.float32)  # DontCare around the second car
+    xyz = np.c_[rng.uniform(-18, 8, (6000, 2)), rng.uniform(-2, 1.5, 6000)].astype(np.float32)
+    fg, ignore, part = part_targets(*(torch.from_numpy(a) for a in (xyz, gt, others)), 0.3)
+    grow = lambda b: b + [0, 0, 0, 0.6, 0.6, 0.6, 0]  # noqa: E731
+    in_car = points_in_boxes(xyz, gt).any(1)
+    near = points_in_boxes(xyz, grow(gt)).any(1) | points_in_boxes(xyz, grow(others)).any(1)
+    np.testing.assert_array_equal(fg.numpy() > 0, in_car)
+    np.testing.assert_array_equal(ignore.numpy(), near & ~in_car)
+    on_truck = points_in_boxes(xyz, others[:1])[:, 0]
+    assert on_truck.sum() > 100 and ignore.numpy()[on_truck].all() and not part.numpy()[on_truck].any()
+    assert points_in_boxes(xyz, gt[1:])[:, 0].sum() > 10  # the car inside the DontCare region is foreground
+    old = part_targets(torch.from_numpy(xyz), torch.from_numpy(gt), torch.zeros(0, 7), 0.3)
+    assert torch.equal(old[0], fg) and torch.equal(old[2], part)  # the cars' targets unchanged
+    assert not part_targets(torch.from_numpy(xyz), torch.zeros(0, 7), torch.from_numpy(others), 0.3)[0].any()
+    np.testing.assert_array_equal(
+        part_targets(torch.from_numpy(xyz), torch.zeros(0, 7), torch.from_numpy(others), 0.3)[1].numpy(),
+        points_in_boxes(xyz, grow(others)).any(1))
 
 
 def test_voxel_centres_match_reference():

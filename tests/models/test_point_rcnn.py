@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from harness.core.boxes import points_in_boxes
 from harness.core.types import Sample
 from models.export import export_onnx, integer_extremes, run_onnx
 from models.point_rcnn import (
@@ -170,6 +171,42 @@ def test_build_rejects_unknown_profile():
     with pytest.raises(ValueError, match="unknown profile"):
         build("huge")
     assert isinstance(build("tiny"), PointRCNN)
+
+
+def test_seg_targets_leave_points_on_an_ignored_box_out():
+    """A point inside a truck box (or near a car) is neither foreground nor background (weight 0); a
+    point inside a car inside an ignored box is the car's; the rest is background."""
+    rng = np.random.default_rng(3)
+    cars = np.array([[2.0, 1.0, -0.9, 4.0, 1.8, 1.5, 0.4], [-12.0, 3.0, -0.9, 4.2, 1.7, 1.5, 0.1]], np.float32)
+    others = np.array([[-4.0, -3.0, 0.0, 11.5, 2.55, 3.8, -0.3], [-12.0, 3.0, -0.5, 8.0, 4.0, 3.0, 0.0]], np.float32)
+    xyz = np.c_[rng.uniform(-18, 8, (6000, 2)), rng.uniform(-2, 1.5, 6000)].astype(np.float32)
+    fg, weight, _ = PointRCNN(CFG).seg_targets(*(torch.from_numpy(a) for a in (xyz, cars, others)))
+    in_car = points_in_boxes(xyz, cars).any(1)
+    m = CFG.seg_ignore_margin  # added to l, w and h
+    near_car = points_in_boxes(xyz, cars + np.float32([0, 0, 0, m, m, m, 0])).any(1)
+    on_truck = points_in_boxes(xyz, others[:1])[:, 0]
+    np.testing.assert_array_equal(fg.numpy(), in_car)
+    np.testing.assert_array_equal(weight.numpy() == 0, (near_car | points_in_boxes(xyz, others).any(1)) & ~in_car)
+    assert on_truck.sum() > 100 and (weight.numpy()[on_truck] == 0).all()
+
+
+def test_frame_loss_takes_the_ignored_classes(monkeypatch):
+    """The segmentation's and the RoI sampling's ignored boxes are the anchor heads' (Van, Truck, DontCare:
+    ``frame_targets``); a Pedestrian is background for the Car detector, as in every other model."""
+    import models.point_rcnn as point_rcnn
+    seen = {}
+    seg_targets, sample_rois = PointRCNN.seg_targets, point_rcnn.sample_rois
+    monkeypatch.setattr(PointRCNN, "seg_targets", lambda self, xyz, cars, others: (
+        seen.setdefault("seg", others.clone()), seg_targets(self, xyz, cars, others))[1])
+    monkeypatch.setattr(point_rcnn, "sample_rois", lambda rois, gt, cfg, rng, ignore: (
+        seen.setdefault("rois", ignore.copy()), sample_rois(rois, gt, cfg, rng, ignore))[1])
+    scene = tiny_scene(np.random.default_rng(4), n_cars=1)
+    boxes = np.concatenate([scene.gt_boxes, [[30.0, 5.0 * i, -0.9, 4.0, 1.8, 1.5, 0.0] for i in range(5)]])
+    names = np.array(["Car", "Van", "Truck", "DontCare", "Pedestrian", "Cyclist"])
+    torch.manual_seed(0)
+    PointRCNN(CFG).loss([Sample("000000", scene.points, boxes.astype(np.float32), names)])
+    for key in ("seg", "rois"):
+        np.testing.assert_array_equal(np.asarray(seen[key]), boxes[1:4].astype(np.float32))
 
 
 def test_forward_shapes_and_loss_falls():

@@ -1,4 +1,5 @@
-"""PV-RCNN tiny profile: keypoint targets, level centres and BEV sampling against references,
+"""PV-RCNN tiny profile: keypoint targets (keypoints on ignored boxes left out), level centres and BEV
+sampling against references,
 output shapes, loss falls, onnxruntime == torch on random, tiny and empty clouds."""
 from __future__ import annotations
 
@@ -16,13 +17,31 @@ def test_keypoint_targets_match_reference():
     gt = np.array([[2.0, 1.0, 0.0, 4.0, 2.0, 1.5, 0.4], [-3.0, -2.0, 0.2, 3.0, 1.5, 1.2, -1.2]],
                   np.float32)
     kp = np.c_[rng.uniform(-6, 6, (2000, 2)), rng.uniform(-1.5, 1.5, 2000)].astype(np.float32)
-    got = keypoint_targets(torch.from_numpy(kp), torch.from_numpy(gt), 0.2).numpy()
+    got, weight = keypoint_targets(torch.from_numpy(kp), torch.from_numpy(gt), torch.zeros(0, 7), 0.2)
     grown = gt.copy()
     grown[:, 3:6] += 0.4
     want = points_in_boxes(kp, grown).any(1)
-    np.testing.assert_array_equal(got > 0, want)
-    assert 50 < want.sum() < 1900
-    assert not keypoint_targets(torch.from_numpy(kp), torch.zeros(0, 7), 0.2).any()
+    np.testing.assert_array_equal(got.numpy() > 0, want)
+    assert 50 < want.sum() < 1900 and (weight.numpy() == 1).all()
+    fg, weight = keypoint_targets(torch.from_numpy(kp), torch.zeros(0, 7), torch.zeros(0, 7), 0.2)
+    assert not fg.any() and (weight.numpy() == 1).all()
+
+
+def test_keypoints_on_an_ignored_box_have_weight_zero():
+    """The predicted keypoint weighting: a keypoint inside a truck box (enlarged by the margin, as the
+    cars') is neither foreground nor background; the cars' keypoints keep their targets."""
+    rng = np.random.default_rng(1)
+    gt = np.array([[2.0, 1.0, 0.0, 4.0, 2.0, 1.5, 0.4]], np.float32)
+    truck = np.array([[-3.0, -1.0, 0.5, 11.5, 2.55, 3.8, 0.2]], np.float32)  # overlaps the car: the car first
+    kp = np.c_[rng.uniform(-10, 6, (3000, 2)), rng.uniform(-1.5, 2.0, 3000)].astype(np.float32)
+    fg, weight = keypoint_targets(*(torch.from_numpy(a) for a in (kp, gt, truck)), 0.2)
+    grow = lambda b: b + [0, 0, 0, 0.4, 0.4, 0.4, 0]  # noqa: E731
+    in_car, in_truck = points_in_boxes(kp, grow(gt))[:, 0], points_in_boxes(kp, grow(truck))[:, 0]
+    np.testing.assert_array_equal(fg.numpy() > 0, in_car)
+    np.testing.assert_array_equal(weight.numpy() == 0, in_truck & ~in_car)
+    assert (in_truck & ~in_car).sum() > 100 and (in_truck & in_car).sum() > 20
+    old, _ = keypoint_targets(torch.from_numpy(kp), torch.from_numpy(gt), torch.zeros(0, 7), 0.2)
+    assert torch.equal(old, fg)
 
 
 def test_level_centres_match_reference():

@@ -1,4 +1,5 @@
-"""Second-stage target assignment, canonical box coding, corner and IoU-guided losses."""
+"""Second-stage target assignment (RoIs on ignored boxes left out), canonical box coding, corner and
+IoU-guided losses."""
 from __future__ import annotations
 
 from dataclasses import replace
@@ -6,11 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from shapely.geometry import Polygon
 
-from harness.core.boxes import corners_3d, iou_3d, points_in_boxes, wrap_angle
-from models.roi_head import (SCORE_RULES, OutputConfig, RefineHead, RoITargetConfig, box_corners, corner_loss,
-                             decode_canonical, encode_canonical, final_scores, finalize, iou_score_target,
-                             refine_loss, roi_support, sample_rois, score_loss)
+from harness.core.boxes import corners_3d, corners_bev, iou_3d, points_in_boxes, wrap_angle
+from models.roi_head import (IGNORE_IOA, SCORE_RULES, OutputConfig, RefineHead, RoITargetConfig, box_corners,
+                             corner_loss, decode_canonical, encode_canonical, final_scores, finalize,
+                             iou_score_target, on_ignored, refine_loss, roi_support, sample_rois, score_loss)
 
 
 def test_encode_canonical_matches_reference(random_boxes):
@@ -141,6 +143,90 @@ def test_sample_rois_draws_as_openpcdet(n_fg, n_hard, n_easy):
     fg_rows = t.rois.numpy()[got >= 0.55]
     if n_hard + n_easy:  # foreground without replacement
         assert len(np.unique(fg_rows[:, 0])) == len(fg_rows)
+
+
+TRUCK = np.array([[20.0, 0.0, -0.1, 11.5, 2.55, 3.8, 0.0]], np.float32)  # rear face at x = 14.25 m
+ON_REAR = np.array([[15.7, 0.3, -0.9, 3.9, 1.6, 1.56, 0.05]], np.float32)  # a car-sized RoI on it, 0.5 m out
+ON_NOTHING = np.array([[40.0, 10.0, -0.9, 3.9, 1.6, 1.56, 0.3]], np.float32)
+
+
+def _shapely_ioa(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(Ka, Kb) share of each a box's BEV rectangle inside each b box's, by shapely."""
+    pa, pb = [Polygon(c) for c in corners_bev(a)], [Polygon(c) for c in corners_bev(b)]
+    return np.array([[x.intersection(y).area / x.area for y in pb] for x in pa]).reshape(len(a), len(b))
+
+
+def test_on_ignored_matches_shapely(random_boxes):
+    rng = np.random.default_rng(11)
+    rois = random_boxes(rng, 300, 12.0)
+    ignore = random_boxes(rng, 6, 10.0) * [1, 1, 1, 2.5, 1.3, 2.0, 1]  # truck- and van-sized
+    want = _shapely_ioa(rois, ignore).max(1)
+    clear = np.abs(want - IGNORE_IOA) > 1e-3  # float32 against float64 at the threshold
+    np.testing.assert_array_equal(on_ignored(rois, ignore)[clear], (want >= IGNORE_IOA)[clear])
+    assert 10 < (want >= IGNORE_IOA).sum() < 290
+    assert not on_ignored(rois, np.zeros((0, 7), np.float32)).any()
+    assert on_ignored(np.zeros((0, 7), np.float32), ignore).shape == (0,)
+
+
+def test_a_roi_on_a_truck_is_not_background_and_one_on_nothing_is(random_boxes):
+    """A car-sized RoI on a truck's rear face (3D IoU < 0.1 with the truck) is not drawn as background;
+    one on nothing is; a RoI on a car inside an ignored box stays foreground."""
+    assert float(_shapely_ioa(ON_REAR, TRUCK)[0, 0]) > 0.85 and iou_3d(ON_REAR, TRUCK)[0, 0] < 0.1
+    car = np.array([[5.0, -6.0, -0.9, 4.2, 1.8, 1.5, 0.2]], np.float32)
+    dontcare = np.array([[5.0, -6.0, -0.5, 9.0, 5.0, 3.0, 0.0]], np.float32)  # a car inside a DontCare region
+    proposals = np.concatenate([ON_REAR, ON_NOTHING, car + [0.1, 0, 0, 0, 0, 0, 0.02]])
+    cfg = RoITargetConfig(per_frame=16)
+    t = sample_rois(proposals, car, cfg, np.random.default_rng(0), np.concatenate([TRUCK, dontcare]))
+    rows = t.rois.numpy()
+    assert not np.isclose(rows[:, 0], ON_REAR[0, 0]).any()  # never drawn
+    nothing = np.isclose(rows[:, 0], ON_NOTHING[0, 0])
+    assert nothing.any() and (t.iou.numpy()[nothing] == 0).all()  # background
+    assert (t.iou.numpy()[~nothing] >= cfg.fg_iou).all()  # the rest: the car, foreground on the DontCare
+    assert (t.weight.numpy() == 1).all()
+    old = sample_rois(proposals, car, cfg, np.random.default_rng(0))  # without ignored boxes: background
+    assert np.isclose(old.rois.numpy()[:, 0], ON_REAR[0, 0]).any()
+
+
+def test_rois_only_on_a_truck_have_no_confidence_loss():
+    """With nothing else to draw, the RoIs on the truck fill the draw at weight 0: the confidence loss
+    neither rewards nor penalises them (0, no gradient), in both score types."""
+    for cfg in (RoITargetConfig(per_frame=8), RoITargetConfig(per_frame=8, score_type="cls", score_lo=0.45,
+                                                                score_hi=0.6)):
+        t = sample_rois(ON_REAR, np.zeros((0, 7), np.float32), cfg, np.random.default_rng(0), TRUCK)
+        assert len(t.rois) == 8 and (t.weight.numpy() == 0).all()
+        logit = torch.randn(8, requires_grad=True)
+        losses = refine_loss(logit, torch.zeros(8, 7), t, cfg)
+        losses["rcnn_score"].backward()
+        assert float(losses["rcnn_score"].detach()) == 0.0 and float(logit.grad.abs().max()) == 0.0
+        assert float(losses["rcnn_reg"].detach()) == 0.0
+
+
+def test_sample_rois_without_ignored_boxes_is_unchanged(random_boxes):
+    """Car behaviour: no ignored box, or ignored boxes far from every RoI, give the draw of no ``ignore``
+    argument (the function before ignored boxes) with every weight 1."""
+    rng = np.random.default_rng(12)
+    gt = random_boxes(rng, 3, 15.0)
+    proposals = np.concatenate([random_boxes(rng, 80, 20.0), gt + [0.2, 0, 0, 0, 0, 0, 0.05]]).astype(np.float32)
+    far = TRUCK + [200.0, 0, 0, 0, 0, 0, 0]
+    cfg = RoITargetConfig(per_frame=32)
+    want = sample_rois(proposals, gt, cfg, np.random.default_rng(0))
+    for ignore in (np.zeros((0, 7), np.float32), far):
+        got = sample_rois(proposals, gt, cfg, np.random.default_rng(0), ignore)
+        for name in ("rois", "iou", "gt", "weight"):
+            assert torch.equal(getattr(got, name), getattr(want, name))
+    assert (want.weight.numpy() == 1).all()
+
+
+def test_score_loss_leaves_weight_zero_rois_out():
+    rng = np.random.default_rng(13)
+    iou = torch.from_numpy(rng.uniform(0, 1, 200).astype(np.float32))
+    logit = torch.from_numpy(rng.normal(0, 2, 200).astype(np.float32))
+    weight = torch.from_numpy((rng.uniform(0, 1, 200) > 0.3).astype(np.float32))
+    kept = weight.numpy() > 0
+    for cfg in (RoITargetConfig(), RoITargetConfig(score_type="cls", score_lo=0.45, score_hi=0.6)):
+        want = score_loss(logit[kept], iou[kept], cfg)
+        np.testing.assert_allclose(float(score_loss(logit, iou, cfg, weight)), float(want), rtol=1e-6)
+        assert float(score_loss(logit, iou, cfg, torch.ones(200))) == float(score_loss(logit, iou, cfg))
 
 
 def test_score_loss_of_both_score_types_matches_reference():
