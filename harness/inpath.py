@@ -23,13 +23,12 @@ from __future__ import annotations
 import numpy as np
 
 from harness.core.boxes import bev_intersection
+from harness.core.visibility import RANGE_X_M
 
 CENTRE_M = 2.0  # m, centre-distance matching (nuScenes)
 REAR_ABS_M = 1.0  # m, rear-face tolerance ...
 REAR_REL = 0.03  # ... or this share of the range, whichever is larger
 LANE_HALF_WIDTH_M = 1.75  # m, half the simulated highway's 3.5 m lane (simulator.road.RoadConfig)
-RANGE_X_M = 80.0  # m ahead: the detectors' range (default profile's point-cloud range, the labelled distance)
-RANGE_Y_M = 32.0  # m either side
 LIDAR_TO_FRONT_M = 4.7 / 2  # m, the ego's front bumper ahead of its roof LiDAR (simulator.scenario.EGO_DIMS)
 
 

@@ -6,7 +6,7 @@
   or with a body or sweep axis this code does not know, is refused naming the file and the value.
 - ``reference_frames``: per frame the slow vehicle's box, the other label boxes (every row is a vehicle: the
   occluders and the objects a phantom must miss), the footprint shares seen from the sensor
-  (``harness.visibility``) and the ego lane's curvature (``harness.inpath.lane_curvature``).
+  (``harness.core.visibility``) and the ego lane's curvature (``harness.inpath.lane_curvature``).
 - ``detector_frames``: per frame whether a detector's result file holds an in-path hit on the slow vehicle
   (``harness.inpath``), a box of BEV IoU >= 0.5 with it (box quality) and how many phantom in-path boxes.
 """
@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness import inpath, visibility
+from harness import inpath
+from harness.core import visibility
 from harness.core.boxes import iou_bev
 from harness.core.kitti import KittiError, frame_path, read_calib, read_image_set, read_labels
 from harness.sotif import load_meta

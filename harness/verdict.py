@@ -31,7 +31,7 @@ from harness import decision, reference
 from harness.inpath import LIDAR_TO_FRONT_M
 from harness.core.files import atomic_write_text
 from harness.sotif_space import rate_row
-from harness.visibility import VISIBLE_MIN
+from harness.core.visibility import VISIBLE_MIN
 from harness.core.braking import A_PASS_MPS2, DECEL_MPS2, T_REACT_S, T_REACT_SYSTEM_S
 
 VERDICTS = ("perception", "system")

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from harness.core.braking import A_PASS_MPS2, EGO_DIMS, T_REACT_SYSTEM_S, stopping_distance
+from harness.core.visibility import footprint_shares
+from simulator.labels import lidar_boxes
 from simulator.lidar import Pose
 from simulator.road import RoadConfig, lane_center, road_to_world
 from simulator.vehicles import Vehicle, sample_body, sample_dims, sample_paint
@@ -65,6 +67,7 @@ def _acc(gap: float, v: float, v_lead: float, sc: SotifConfig) -> float:
     return float(np.clip(0.2 * (gap - desired) + 0.9 * (v_lead - v), -6.0, 1.5))
 
 
+VISIBLE_LEAD_S = 0.5  # s recorded at 10 Hz before the slow vehicle is first visible (the confirmation rule's window)
 CLEARANCE_M = 0.25  # m side to side between the fast car and the slow car when the fast car is out of its way
 
 
@@ -165,21 +168,37 @@ def window_length_s(gap_m: float, closing_mps: float, t_react: float = T_REACT_S
     return max(gap_m - stopping_distance(closing_mps, t_react, decel), 0.0) / closing_mps
 
 
+def first_visible_step(states: list[FrameState], start: int, stop: int) -> int | None:
+    """The first step in [start, stop] at which any of the slow vehicle's (``states[k].vehicles[0]``) BEV footprint
+    is unoccluded by the other vehicles and within the detectors' range, seen from the LiDAR
+    (``harness.core.visibility``: the reference's geometry); None when it never is."""
+    for k in range(start, min(stop, len(states) - 1) + 1):
+        st = states[k]
+        boxes = lidar_boxes(st.vehicles, st.pose, 0.0)
+        if footprint_shares(boxes[0], boxes[1:])["visible"] > 0.0:
+            return k
+    return None
+
+
 def instance_steps(states: list[FrameState], sc: SotifConfig, lead_in: int, slack_s: float,
                    window_max_s: float) -> list[tuple[int, bool]]:
     """(step, in the decision window) of the frames an instance records, from its run at every step (states[k] at
-    step k): ``lead_in`` frames every ``sc.record_every``-th step before the lane change; then every step (the
-    LiDAR's 10 Hz) from the lane change through the decision window (window_length_s of the gap, front bumper to
-    rear face, and the closing speed at the lane change) plus ``slack_s``, at most ``window_max_s`` after the
-    cut-out (the fast car clear of the slow car)."""
+    step k). The decision window runs from the lane change through the latest confirmation that can still pass
+    (window_length_s of the gap, front bumper to rear face, and the closing speed at the lane change) plus
+    ``slack_s``, at most ``window_max_s`` after the cut-out (the fast car clear of the slow car). It is recorded at
+    every step (the LiDAR's 10 Hz) from ``VISIBLE_LEAD_S`` before the slow vehicle is first visible at all (no
+    detector can hit it earlier; the reference needs 30 % of it), or from the lane change when that is later or it
+    never is; ``lead_in`` frames every ``sc.record_every``-th step come before."""
     step_lc = int(round(states[0].info["lane_change_time_s"] / sc.dt))
     st = states[step_lc]
     gap = st.info["slow_car_distance_m"] - (sc.slow_body[1][0] + EGO_DIMS[0]) / 2
     clear_s = states[0].info["cutout_time_s"] - states[0].info["lane_change_time_s"]
     end_s = min(window_length_s(gap, st.ego_speed - sc.slow_speed) + slack_s, clear_s + window_max_s)
     last = step_lc + int(round(end_s / sc.dt))
-    lead = [(step_lc - k * sc.record_every, False) for k in range(lead_in, 0, -1) if step_lc >= k * sc.record_every]
-    return lead + [(k, True) for k in range(step_lc, last + 1)]
+    seen = first_visible_step(states, step_lc, last)
+    first = step_lc if seen is None else max(step_lc, seen - int(round(VISIBLE_LEAD_S / sc.dt)))
+    lead = [(first - k * sc.record_every, False) for k in range(lead_in, 0, -1) if first >= k * sc.record_every]
+    return lead + [(k, True) for k in range(first, last + 1)]
 
 
 def run_steps(sc: SotifConfig, window_max_s: float, slack_s: float) -> int:

@@ -9,7 +9,8 @@ import pytest
 
 from shapely.geometry import LineString, Polygon
 
-from harness import reference, verdict, visibility
+from harness import reference, verdict
+from harness.core import visibility
 from harness.core import kitti
 from harness.core.boxes import corners_bev
 from harness.cli import main

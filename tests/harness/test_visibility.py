@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from shapely.geometry import LineString, Polygon
 
-from harness import visibility
+from harness.core import visibility
 from harness.core.boxes import corners_bev
 
 SLOW = np.array([50.0 + 4.75 / 2, 0.0, -0.9, 4.75, 1.83, 1.45, 0.0])

@@ -77,6 +77,30 @@ def test_a_perfect_detector_can_pass_most_instances():
     assert _kinematic_window(STUDY) > 3.0  # the study's scenario: seconds to spare
 
 
+def _first_visible_by_shapely(run) -> int:
+    """First step at which a sight line from the LiDAR to some point of the slow car's footprint (a 40 x 10 grid)
+    crosses no other vehicle's footprint and the point is within 80 m ahead, 32 m aside."""
+    from shapely.geometry import LineString, Polygon
+
+    from simulator.labels import lidar_boxes
+
+    def poly(b):
+        c, s_ = np.cos(b[6]), np.sin(b[6])
+        return Polygon([(b[0] + c * u - s_ * v, b[1] + s_ * u + c * v)
+                        for u, v in ((b[3] / 2, b[4] / 2), (-b[3] / 2, b[4] / 2), (-b[3] / 2, -b[4] / 2),
+                                     (b[3] / 2, -b[4] / 2))])
+    for k, st in enumerate(run):
+        boxes = lidar_boxes(st.vehicles, st.pose, 0.0)
+        b, others = boxes[0], [poly(o) for o in boxes[1:]]
+        c, s_ = np.cos(b[6]), np.sin(b[6])
+        for u in (np.arange(40) + 0.5) / 40 - 0.5:
+            for v in (np.arange(10) + 0.5) / 10 - 0.5:
+                x, y = b[0] + c * u * b[3] - s_ * v * b[4], b[1] + s_ * u * b[3] + c * v * b[4]
+                if 0 <= x <= 80 and abs(y) <= 32 and not any(LineString([(0, 0), (x, y)]).intersects(o) for o in others):
+                    return k
+    raise AssertionError("never visible")
+
+
 def test_instance_steps_window_is_at_10_hz():
     """Every step (10 Hz) from the lane change to the latest passing confirmation plus slack, capped."""
     sc = SotifConfig()
@@ -86,9 +110,12 @@ def test_instance_steps_window_is_at_10_hz():
     end_s = window_length_s(gap, run[k_lc].ego_speed - sc.slow_speed) + 0.3  # the study's: 8.8 s + slack
     clear_s = run[0].info["cutout_time_s"] - run[0].info["lane_change_time_s"]  # the cut-out 1.7 s later
     steps = instance_steps(run, sc, lead_in=2, slack_s=0.3, window_max_s=7.5)
-    lead = [k for k, w in steps if k < k_lc]
     window = [k for k, w in steps if w]
-    assert lead == [k_lc - 10, k_lc - 5] and window[0] == k_lc and np.all(np.diff(window) == 1)
+    lead = [k for k, w in steps if k < window[0]]
+    # 10 Hz from 0.5 s before any of the slow car is visible (by the shapely check below), 2 Hz lead-in before
+    first = _first_visible_by_shapely(run)
+    assert k_lc < first and window[0] == first - 5
+    assert lead == [window[0] - 10, window[0] - 5] and np.all(np.diff(window) == 1)
     assert [k for k, w in steps if not w] == lead  # no 2 Hz tail
     assert 1.5 < clear_s < 2.0 and 8.5 < end_s < clear_s + 7.5 and window[-1] == k_lc + round(end_s / sc.dt)
     capped = instance_steps(run, sc, lead_in=2, slack_s=0.3, window_max_s=2.5)

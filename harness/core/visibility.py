@@ -2,10 +2,13 @@
 
 The slow vehicle's BEV footprint is sampled on a regular grid (``GRID_L`` x ``GRID_W`` cell centres). A sample
 is *unoccluded* when the segment from the sensor (the LiDAR frame's origin) to it crosses no other object's
-footprint, and *in range* when it lies within the detectors' range (``harness.inpath.RANGE_X_M`` ahead,
-``RANGE_Y_M`` either side). The vehicle is *perceivable* in a frame when at least ``VISIBLE_MIN`` (30 %) of its
+footprint, and *in range* when it lies within the detectors' range (``RANGE_X_M`` ahead, ``RANGE_Y_M``
+either side). The vehicle is *perceivable* in a frame when at least ``VISIBLE_MIN`` (30 %) of its
 footprint is both. The test is two-dimensional and weather-blind: a roof LiDAR that sees a truck's upper body
 over a low car counts it hidden, so the reference is never earlier than what the footprint alone shows.
+
+The simulator uses it too: a scenario instance records at 10 Hz from shortly before any of the slow vehicle is
+visible (``simulator.scenario.instance_steps``).
 
 Segment-rectangle crossings are Liang-Barsky clips in each rectangle's own frame, vectorised over samples and
 occluders; ``tests/harness/test_visibility.py`` holds them against shapely on random scenes.
@@ -14,8 +17,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from harness.inpath import RANGE_X_M, RANGE_Y_M
-
+RANGE_X_M = 80.0  # m ahead: the detectors' range (default profile's point-cloud range, the labelled distance)
+RANGE_Y_M = 32.0  # m either side
 GRID_L, GRID_W = 12, 5  # footprint samples along the length and the width
 VISIBLE_MIN = 0.3  # share of the footprint unoccluded and in range: perceivable
 
