@@ -265,14 +265,15 @@ def _sections(run: tables.Run, t: dict) -> list[Section]:
                 "AP11 and AP40 at IoU 0.7 for 2D bbox, BEV, 3D and AOS with KITTI's easy/moderate/hard filters; "
                 "recall at the proposals (RoI) and refined boxes (RCNN) for two-stage models.",
                 [("AP at IoU 0.7 (%)", t["kitti_ap"], 2), ("Recall of two-stage models (%)", t["recall"], 1)], []),
-        Section("sotif", "SOTIF view: the slow car after the cut-out",
+        # the one-frame view of the study's protocol; a run with the scenario space's verdict shows that instead
+        *([] if "sotif_instances" in t else [Section("sotif", "SOTIF view: the slow car after the cut-out",
                 f"First detection of the slow car in the ego lane after the fast car's lane change (BEV IoU >= "
                 f"{c['iou_bev_min']}, score >= the model's F1-optimal threshold on the val split). Each cell: verdict, "
                 "the gap from the ego's front bumper to its rear face left at that moment if the ego had kept its "
                 "closing speed dv from the lane change (the simulated ego brakes on ground truth), vs the stopping "
                 f"distance dv*{c['t_react_s']:g} s + dv^2/(2*{c['decel_mps2']:g} m/s^2) + {c['margin_m']:g} m, "
                 "and the time after the lane change.", [("", t["sotif_matrix"], 1)], [],
-                notes=tuple(n for n in (notes.sotif_leniency(t["sotif"]),) if n)),
+                notes=tuple(n for n in (notes.sotif_leniency(t["sotif"]),) if n))]),
         *_space_section(run, t),
         Section("robustness", "Robustness",
                 "AP relative to each model's clean value (mean of ClearNoon and ClearSunset); mRR = mean relative "

@@ -99,6 +99,7 @@ def test_tables_and_section(space_run):
     assert lead < md.index("## Models at a glance") < md.index("## SOTIF over the scenario space")
     assert "| sweep | car-bodied: all |" in head and "vans and trucks (outside the learned classes)" in head
     assert "system verdict" in head and "phantom in-path boxes per hour" in head
+    assert "## SOTIF view: the slow car after the cut-out" not in md  # the one-frame view goes with the verdict
     matrix = report_space.rate_matrix(rates)
     assert matrix.columns.name is None and list(matrix.columns[:2]) == ["set", "condition"]
     for fig in ("sotif_margins", "boundary_alpha", "boundary_beta", "reliability"):
