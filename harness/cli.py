@@ -236,10 +236,9 @@ def cmd_verdict(a) -> int:
         raise ValueError(f"--latency-ms {a.latency_ms:g}: a latency must be >= 0 ms")
     if a.threshold is not None and not 0.0 <= a.threshold <= 1.0:
         raise ValueError(f"--threshold {a.threshold:g}: a score threshold lies in [0, 1]")
+    from harness.protect import refuse_overwrite
     data, predictions = Path(a.data), Path(a.predictions)
-    for option, folder in (("--data", data), ("--predictions", predictions)):
-        if folder.resolve() in out.resolve().parents:
-            raise ValueError(f"--output {out}: inside the {option} folder {folder}; write the verdict elsewhere")
+    refuse_overwrite(out, "a verdict", {"--data": data, "--predictions": predictions}, None, a.force)
     threshold, source = (a.threshold, "given") if a.threshold is not None else operating_threshold(data, predictions)
     result = verdict(data, predictions, threshold, latency_ms=a.latency_ms, split=a.split,
                      rule=Rule(reaction_s=REACTIONS[a.reaction]), model=a.model)
@@ -452,6 +451,7 @@ def _add_verdict(sub, quiet) -> None:
                    help="reaction time after the confirmation: an automated system's 0.35 s (UN R157) or a "
                         "driver's 1.0 s (default system)")
     s.add_argument("--model", help="the name in the rows (default: the predictions folder's name)")
+    s.add_argument("--force", action="store_true", help="write --output even inside an input folder")
     s.set_defaults(func=cmd_verdict)
 
 

@@ -243,7 +243,7 @@ def test_cli_bad_predictions_and_latency_exit_2(scenario_set, tmp_path, capsys):
     assert _cli("--data", scenario_set, "--predictions", tmp_path / "nope", "--output", tmp_path / "v.csv") == 2
     assert "nope" in capsys.readouterr().err
     assert _cli("--data", scenario_set, "--predictions", pred, "--output", pred / "v.csv") == 2
-    assert "inside the --predictions folder" in capsys.readouterr().err and not (pred / "v.csv").exists()
+    assert "is inside the --predictions input" in capsys.readouterr().err and not (pred / "v.csv").exists()
     assert not (tmp_path / "v.csv").exists()
 
 
