@@ -10,6 +10,7 @@ import errno
 import os
 import sys
 import traceback
+from dataclasses import replace
 from pathlib import Path
 
 # Waiting OpenMP threads sleep instead of spinning (set before torch loads its OpenMP runtime):
@@ -133,6 +134,10 @@ def cmd_train(a) -> int:
     from harness.train import default_workers, train
     from models.zoo import resolve
     recipe = resolve(_model_name(a.model), a.profile, warm=a.init_from is not None)
+    if a.ema is not None:
+        if not 0.0 <= a.ema < 1.0:
+            raise ValueError(f"--ema {a.ema:g}: the average's decay per step lies in [0, 1) (0: no average)")
+        recipe = replace(recipe, schedule=replace(recipe.schedule, ema=a.ema))
     workers = a.workers or default_workers(recipe, device=a.device)
     ckpt = train(recipe, Path(a.data), Path(a.out), epochs=a.epochs, device=a.device,
                  seed=a.seed, progress=not a.quiet, workers=workers, force=a.force, init_from=a.init_from)
@@ -326,6 +331,10 @@ def _add_train(sub, quiet) -> None:
     s.add_argument("--init-from", metavar="CKPT",
                    help="start from the weights of this checkpoint that fit by name and shape: a sibling's "
                         "first stage, e.g. SECOND's for pv_rcnn or parta2, DV-SECOND's for mvx_net")
+    s.add_argument("--ema", type=float, metavar="DECAY",
+                   help="keep an exponential moving average of the weights with this decay per step (e.g. "
+                        "0.999; warmed up as TensorFlow's) and checkpoint, evaluate and export it (default: the "
+                        "profile's, none)")
     s.set_defaults(func=cmd_train)
 
 

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 import torch.multiprocessing as mp
+from torch.optim.swa_utils import AveragedModel
 from tqdm import tqdm
 
 from harness.augment import AugmentConfig, augment
@@ -38,6 +39,8 @@ from harness.gt_database import load_or_build
 from models import zoo
 from models.base import Detector
 from models.recipe import ModelRecipe, Schedule
+
+EMA_WARMUP = 10.0  # decay at update n: min(decay, (1 + n) / (EMA_WARMUP + n)), TensorFlow ExponentialMovingAverage's num_updates
 
 
 EPOCH_VAL_FRAMES = 20  # val frames scored after every epoch (a few seconds to a minute per model)
@@ -65,15 +68,22 @@ def _build(recipe: ModelRecipe, seed: int) -> torch.nn.Module:
         return recipe.build()
 
 
-def _resume(path: Path, net, optimizer, scheduler, ident: dict) -> tuple[int, float, list]:
+def _resume(path: Path, net, optimizer, scheduler, ident: dict, ema: AveragedModel | None = None
+            ) -> tuple[int, float, list]:
     """Completed epochs, training seconds and val history of a matching checkpoint at ``path``
-    ((0, 0.0, []) when absent / not matching)."""
+    ((0, 0.0, []) when absent / not matching); the network, optimizer, schedule and weight average
+    ``ema`` go on from its state."""
     if not path.is_file():
         return 0, 0.0, []
     ckpt = zoo.read_checkpoint(path)
     if any(ckpt.get(k) != v for k, v in ident.items()):
         return 0, 0.0, []  # another model, data set or config: start again
-    net.load_state_dict(ckpt["state_dict"])
+    if ema is not None:
+        net.load_state_dict(ckpt["train_state_dict"])
+        ema.module.load_state_dict(ckpt["state_dict"])
+        ema.n_averaged.fill_(int(ckpt["ema_updates"]))
+    else:
+        net.load_state_dict(ckpt["state_dict"])
     optimizer.load_state_dict(ckpt["optimizer"])
     scheduler.load_state_dict(ckpt["scheduler"])
     return int(ckpt["epoch"]), float(ckpt.get("train_seconds") or 0.0), list(ckpt.get("val_history") or [])
@@ -107,10 +117,30 @@ def load_batch(ds: KittiDataset, frames, rng: np.random.Generator, aug: AugmentC
     return [augment(ds[int(i)], rng, aug, database) for i in frames]
 
 
+def ema_decay(decay: float, updates: int) -> float:
+    """The weight average's decay at its update number ``updates`` (0 for the first after the copy): ``decay``,
+    lower at first so that the average forgets the initial weights within a few hundred steps."""
+    return min(decay, (1.0 + updates) / (EMA_WARMUP + updates))
+
+
+def weight_average(net: torch.nn.Module, decay: float) -> AveragedModel | None:
+    """The exponential moving average of ``net``'s parameters and buffers (BatchNorm statistics), or None when
+    ``decay`` is 0: torch's ``AveragedModel`` with ``ema_decay``'s warm-up; ``update_parameters(net)`` after every
+    optimizer step."""
+    if not decay:
+        return None
+
+    def average(avg: torch.Tensor, new: torch.Tensor, updates: torch.Tensor) -> torch.Tensor:
+        return avg + (new - avg) * (1.0 - ema_decay(decay, int(updates) - 1))
+    return AveragedModel(net, avg_fn=average, use_buffers=True)
+
+
 def _run_epoch(net, ds, optimizer, scheduler, tcfg: Schedule, seed: int, epoch: int, bar,
-               aug: AugmentConfig = AugmentConfig(), database=None, rank: int = 0, world: int = 1) -> float:
+               aug: AugmentConfig = AugmentConfig(), database=None, rank: int = 0, world: int = 1,
+               ema: AveragedModel | None = None) -> float:
     """One epoch; with ``world`` > 1 data-parallel workers, this one (``rank``) takes the frames
-    ``rank::world`` of every batch and the step is taken on the gradients summed over all of them."""
+    ``rank::world`` of every batch and the step is taken on the gradients summed over all of them.
+    ``ema``: the weight average, updated after every step."""
     net.train()
     losses = []
     batches = _batches(len(ds), tcfg.batch_size, seed, epoch)
@@ -146,6 +176,8 @@ def _run_epoch(net, ds, optimizer, scheduler, tcfg: Schedule, seed: int, epoch: 
             torch.nn.utils.clip_grad_norm_(net.parameters(), tcfg.grad_clip)
             optimizer.step()
             scheduler.step()
+            if ema is not None:
+                ema.update_parameters(net)
             losses.append(value)
             bar.update(1)
             bar.set_postfix(epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.3f}")
@@ -275,6 +307,21 @@ class _Session:
     spent: float  # training seconds before this call
     steps: int
     history: list  # val_history of the completed epochs
+    ema: AveragedModel | None = None  # the weight average (Schedule.ema), what is evaluated and checkpointed
+
+    @property
+    def evaluated(self) -> torch.nn.Module:
+        """The weights a training gives: the average's, or the network's own without one."""
+        return self.net if self.ema is None else self.ema.module
+
+    def weights(self) -> dict:
+        """The checkpoint's weight entries: ``state_dict`` (evaluated and exported) and, with an average, the
+        network's own ``train_state_dict`` and the average's ``ema_updates`` (a resumed training goes on from them)."""
+        if self.ema is None:
+            return {"state_dict": self.net.state_dict()}
+        own = {k: v.clone() for k, v in self.net.state_dict().items()}  # the net may be loaded with the average
+        return {"state_dict": self.ema.module.state_dict(), "train_state_dict": own,
+                "ema_updates": int(self.ema.n_averaged)}
 
 
 def _session(recipe: ModelRecipe, data: Path, out: Path, epochs: int | None, seed: int,
@@ -305,10 +352,11 @@ def _session(recipe: ModelRecipe, data: Path, out: Path, epochs: int | None, see
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=tcfg.lr, total_steps=steps,
                                                     pct_start=0.4, div_factor=10, final_div_factor=100)
     path = out / "checkpoint.pt"
-    done, spent, history = _resume(path, net, optimizer, scheduler, ident)  # spent: s before this call
+    ema = weight_average(net, tcfg.ema)
+    done, spent, history = _resume(path, net, optimizer, scheduler, ident, ema)  # spent: s before this call
     return _Session(recipe, net, ds, database, tcfg, ident,
                     {"config": asdict(cfg), "epochs": epochs, "seed": seed, **warm},
-                    optimizer, scheduler, path, done, spent, steps, history)
+                    optimizer, scheduler, path, done, spent, steps, history, ema)
 
 
 def _bar(s: _Session, show: bool) -> tqdm:
@@ -323,13 +371,13 @@ def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: 
     start, state, checking = time.perf_counter(), None, 0.0  # checking: seconds of the val checks
     for epoch in range(s.done, s.tcfg.epochs):
         loss = _run_epoch(s.net, s.ds, s.optimizer, s.scheduler, s.tcfg, seed, epoch, bar, aug, s.database,
-                          rank=rank, world=world)
+                          rank=rank, world=world, ema=s.ema)
         if rank == 0:
             t = time.perf_counter()
             s.history.append(_epoch_check(s, epoch, loss, bar))
             checking += time.perf_counter() - t
             seconds = s.spent + time.perf_counter() - start - checking
-            state = {**s.ident, **s.state, "state_dict": s.net.state_dict(), "epoch": epoch + 1,
+            state = {**s.ident, **s.state, **s.weights(), "epoch": epoch + 1,
                      "optimizer": s.optimizer.state_dict(), "scheduler": s.scheduler.state_dict(),
                      "final_loss": loss, "train_seconds": seconds, "workers": world, "val_history": s.history}
             _atomic_save(state, s.path)
@@ -343,7 +391,7 @@ def _epoch_check(s: _Session, epoch: int, loss: float, bar) -> dict:
     val AP40 on its first ``EPOCH_VAL_FRAMES`` frames (one line on the progress bar)."""
     entry = {"epoch": epoch + 1, "loss": loss}
     if has_split(s.ds.root, "val"):
-        ap = validation_ap(s.net, s.ds.root, EPOCH_VAL_FRAMES)
+        ap = validation_ap(s.evaluated, s.ds.root, EPOCH_VAL_FRAMES)
         entry.update({k: ap[k] for k in ("3d_moderate", "bev_moderate", "3d_all", "frames")})
         if not bar.disable:
             bar.write(f"epoch {epoch + 1}/{s.tcfg.epochs}: loss {loss:.3f}, val AP40 3D moderate "
@@ -468,7 +516,9 @@ def train(model: str | ModelRecipe, data: Path, out: Path, profile: str | None =
             state = zoo.read_checkpoint(s.path, map_location=device)
             state = None if "val_ap" in state else state
         if state is not None and has_split(data, "val"):
-            # held-out frames of the training generator, kept with the checkpoint
+            # held-out frames of the training generator, kept with the checkpoint; the weights evaluated are
+            # the checkpoint's (the average's, with one)
+            s.net.load_state_dict(state["state_dict"])
             ap = validation_ap(s.net, data)
             _atomic_save({**state, "val_ap": ap}, s.path)
             if progress:

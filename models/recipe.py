@@ -24,6 +24,9 @@ class Schedule:
     lr: float  # peak learning rate of the one-cycle schedule
     weight_decay: float = 0.01
     grad_clip: float = 10.0
+    # exponential moving average of the weights (harness.train): the decay per step, 0 = off; a training with it
+    # evaluates, checkpoints and exports the averaged copy
+    ema: float = 0.0
 
 
 # compact, the default run's profile: each model's RECIPE sets its epochs so that it trains in 14-25 minutes

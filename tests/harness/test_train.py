@@ -203,6 +203,7 @@ _NO_CUDA = pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine
 
 @pytest.mark.parametrize("flags, message", [
     (["--workers", "3"], "workers must be between 1 and the batch size 2, got 3"),
+    (["--ema", "1.5"], "--ema 1.5: the average's decay per step lies in [0, 1)"),
     pytest.param(["--device", "cuda"], "sees no CUDA device here; train with --device cpu", marks=_NO_CUDA),
 ])
 def test_train_refuses_bad_arguments_before_any_work(tmp_path, capsys, flags, message):
@@ -303,3 +304,52 @@ def test_weights_digest_against_hashlib_over_the_raw_bytes():
     changed["b"][1, 2] = float(np.nextafter(np.float32(changed["b"][1, 2].item()), np.float32(np.inf)))
     assert zoo.weights_digest(changed) != zoo.weights_digest(sd)
     assert zoo.weights_digest({"a": sd["a"].double()}) != zoo.weights_digest({"a": sd["a"]})
+
+
+def test_weight_average_against_numpy():
+    """The average of parameters and BatchNorm statistics after each of a few steps, by hand with the warm-up
+    decay min(d, (1 + n) / (10 + n)) of update n (0 after the first copy)."""
+    from harness.train import ema_decay, weight_average
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Linear(3, 4), torch.nn.BatchNorm1d(4))
+    ema = weight_average(net, 0.8)
+    assert weight_average(net, 0.0) is None
+    seen = []
+    for _ in range(6):
+        with torch.no_grad():
+            for p in net.parameters():
+                p.add_(torch.randn_like(p))
+        net.train()(torch.randn(5, 3))  # moves the running statistics
+        seen.append({k: v.detach().numpy().astype(np.float64).copy() for k, v in net.state_dict().items()
+                     if v.dtype.is_floating_point})
+        ema.update_parameters(net)
+    want = dict(seen[0])
+    for n, state in enumerate(seen[1:]):
+        d = min(0.8, (1 + n) / (10 + n))
+        assert ema_decay(0.8, n) == d
+        want = {k: d * want[k] + (1 - d) * v for k, v in state.items()}
+    got = ema.module.state_dict()
+    for k, v in want.items():
+        np.testing.assert_allclose(got[k].numpy(), v, rtol=1e-5, atol=1e-6, err_msg=k)
+
+
+def test_a_training_with_a_weight_average_checkpoints_it_and_resumes_it(tmp_path, monkeypatch):
+    """Schedule.ema: the checkpoint's state_dict (what is evaluated and exported) is the average, the network's
+    own weights go on in train_state_dict, and a training stopped after epoch 1 ends as one that ran through."""
+    from dataclasses import replace
+    recipe = zoo.resolve("pointpillars", "tiny")
+    recipe = replace(recipe, schedule=replace(recipe.schedule, ema=0.9))
+    data = write_synthetic_dataset(tmp_path / "data", frames=4, seed=3, val=1)
+    whole = torch.load(train(recipe, data, tmp_path / "whole", epochs=2, seed=0, progress=False), weights_only=False)
+    assert whole["ema_updates"] == 2 * 2  # 4 frames, batch 2, 2 epochs
+    assert any(not torch.equal(v, whole["train_state_dict"][k]) for k, v in whole["state_dict"].items())
+    model, _ = zoo.load_checkpoint(tmp_path / "whole" / "checkpoint.pt")
+    assert all(torch.equal(v, whole["state_dict"][k]) for k, v in model.state_dict().items())
+    train_stopped_after_epoch_1(monkeypatch, recipe, data, tmp_path / "parts", epochs=2, seed=0, progress=False)
+    parts = torch.load(train(recipe, data, tmp_path / "parts", epochs=2, seed=0, progress=False), weights_only=False)
+    for entry in ("state_dict", "train_state_dict"):
+        for k, v in whole[entry].items():
+            assert torch.equal(v, parts[entry][k]), (entry, k)
+    plain = torch.load(train("pointpillars", data, tmp_path / "plain", profile="tiny", epochs=2, seed=0,
+                             progress=False), weights_only=False)
+    assert "train_state_dict" not in plain and plain["config_hash"] != whole["config_hash"]
