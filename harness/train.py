@@ -230,14 +230,14 @@ def eager_inputs(sample, camera: bool, device="cpu") -> list[torch.Tensor]:
     return inputs
 
 
-def validation_ap(net, data: Path, max_frames: int | None = None) -> dict:
-    """AP40 (3D / BEV, IoU 0.7) of the eager model on the ``val`` split with the project's KITTI
+def validation_ap(net, data: Path, max_frames: int | None = None, split: str = "val") -> dict:
+    """AP40 (3D / BEV, IoU 0.7) of the eager model on the ``split`` split (default ``val``) with the project's KITTI
     evaluator: KITTI moderate and the headline (all distances, height filter off)."""
     from harness.eval_kitti import build_eval_set, kitti_ap
     from harness.evaluate import headline_summary
     from harness.infer import boxes_to_results
 
-    ds = KittiDataset(data, "val", with_image=getattr(net, "uses_camera", False))
+    ds = KittiDataset(data, split, with_image=getattr(net, "uses_camera", False))
     n = len(ds) if max_frames is None else min(len(ds), max_frames)
     gt, dt = [], []
     net.eval()
