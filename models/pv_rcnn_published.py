@@ -12,7 +12,7 @@
   by Linear-BN-ReLU to 128; ``PointHeadSimple`` (CLS_FC 256-256, class-agnostic) reads the features
   before the fusion (``USE_POINT_FEATURES_BEFORE_FUSION``) and its sigmoid weights the fused ones (the
   weighting of ``PVRCNNHead.roi_grid_pool``). Every set abstraction pools the MLP of an all-zero group
-  for an empty ball, as the stacked ``QueryAndGroup``.
+  for an empty ball, as the stacked ``QueryAndGroup``, and squares its radius as the CUDA kernel does.
 - ``grid_points`` / ``PublishedRoIGridPool``: the 6 x 6 x 6 RoI grid points as ``PVRCNNHead`` computes
   them (a ``matmul`` by the rotation matrix: the same float32 bits, which the ball query's radius test
   needs), pooled features laid out channel-major as its flatten reads them.
@@ -65,6 +65,13 @@ def bev_features(bev: Tensor, xyz: Tensor, pc_range: Sequence[float], voxel_size
             + at(y1, x1) * wd[:, None])
 
 
+def cuda_radii(radii: Sequence[float]) -> tuple[float, ...]:
+    """The radii rounded to float32: the stacked ball query squares ``float radius`` in float32, whose
+    square is the float32 rounding of the rounded radius's exact square (1 ulp above ours for 0.4, 0.8 and
+    1.6 m)."""
+    return tuple(torch.tensor(radii, dtype=torch.float32).tolist())
+
+
 def point_head(c_in: int, widths: Sequence[int]) -> nn.Sequential:
     """OpenPCDet's PointHeadTemplate.make_fc_layers: [Linear (no bias), BN, ReLU] per width, Linear(., 1)."""
     layers: list[nn.Module] = []
@@ -87,9 +94,9 @@ class PublishedVSA(nn.Module):
     def __init__(self, cfg, level_channels: list[int], bev_channels: int, bev_stride: int):
         super().__init__()
         self.cfg, self.bev_stride = cfg, bev_stride
-        self.raw = SetAbstraction(1, cfg.raw_radii, cfg.raw_nsamples, cfg.raw_mlps, zero_empty=False)
+        self.raw = SetAbstraction(1, cuda_radii(cfg.raw_radii), cfg.raw_nsamples, cfg.raw_mlps, zero_empty=False)
         self.levels = nn.ModuleList(
-            SetAbstraction(c, radii, nsamples, [(c, c)] * len(radii), zero_empty=False)
+            SetAbstraction(c, cuda_radii(radii), nsamples, [(c, c)] * len(radii), zero_empty=False)
             for c, radii, nsamples in zip(level_channels, cfg.level_radii, cfg.level_nsample_sets))
         total = bev_channels + self.raw.out_channels + sum(s.out_channels for s in self.levels)
         self.fuse = nn.Sequential(nn.Linear(total, cfg.kp_channels, bias=False),
@@ -128,7 +135,7 @@ class PublishedRoIGridPool(nn.Module):
                  mlps: Sequence[Sequence[int]]):
         super().__init__()
         self.grid = grid
-        self.sa = SetAbstraction(in_channels, radii, nsamples, mlps, zero_empty=False)
+        self.sa = SetAbstraction(in_channels, cuda_radii(radii), nsamples, mlps, zero_empty=False)
         self.out_channels = self.sa.out_channels
 
     def forward(self, rois: Tensor, kp_xyz: Tensor, kp_feats: Tensor) -> Tensor:
