@@ -1,9 +1,9 @@
 """The exported ONNX files of the imported published networks against the references' golden boxes.
 
-    python -m benchmarks.golden_onnx [--models pointpillars,second,parta2,dv_second,dv_second_car] [--keep DIR]
+    python -m benchmarks.golden_onnx [--models pointpillars,second,parta2,pv_rcnn,dv_second,dv_second_car] [--keep DIR]
 
 For each golden file of ``tests/golden`` (``benchmarks/golden_published.py`` and
-``benchmarks/golden_parta2.py``, OpenPCDet; ``benchmarks/golden_mmdet3d.py``, MMDetection3D): rebuilds the reference checkpoint from the seeded
+``benchmarks/golden_parta2.py``, ``benchmarks/golden_pvrcnn.py``, OpenPCDet; ``benchmarks/golden_mmdet3d.py``, MMDetection3D): rebuilds the reference checkpoint from the seeded
 rule in the reference's file format, imports it (``sotif-bench import``'s code), exports it
 (``sotif-bench export``'s code, one self-contained file), runs the file with onnxruntime on the golden
 frame and prints the export time, the number of Car boxes of both and the largest differences of
@@ -30,7 +30,7 @@ from tests.models.test_published_golden import car_boxes, differences, load
 BOX_TOL, SCORE_TOL = 1e-3, 1e-4
 # case -> (source, model, config of the golden file)
 CASES = {"pointpillars": ("openpcdet", "pointpillars", ""), "second": ("openpcdet", "second", ""),
-         "parta2": ("openpcdet", "parta2", ""),
+         "parta2": ("openpcdet", "parta2", ""), "pv_rcnn": ("openpcdet", "pv_rcnn", ""),
          "dv_second": ("mmdet3d", "dv_second", ""), "dv_second_car": ("mmdet3d", "dv_second", "car")}
 REFERENCE_FILE = {"openpcdet": openpcdet_golden.reference_file, "mmdet3d": mmdet3d_golden.reference_file}
 

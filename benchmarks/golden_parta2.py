@@ -25,7 +25,6 @@ boxes of every proposal and the final boxes of every class with labels and score
 """
 from __future__ import annotations
 
-import argparse
 import sys
 import types
 from pathlib import Path
@@ -35,8 +34,7 @@ import torch
 from torch import nn
 
 from benchmarks.golden_published import frame as published_frame
-from benchmarks.golden_published import import_openpcdet, iou, polygon, sample, voxelize
-from benchmarks.golden_weights import RULE, fill
+from benchmarks.golden_published import import_openpcdet, iou, polygon, reference_main, sample, seeded, voxelize
 
 SEED, CLS_BIAS = 500, -2.0
 GROUND = 8000
@@ -215,9 +213,7 @@ class TieError(RuntimeError):
 
 def golden(root: Path, out: Path, seed: int = SEED) -> Path:
     net, proc, post, classes = build(root)
-    state = net.state_dict()
-    names, shapes = list(state), [tuple(t.shape) for t in state.values()]
-    net.load_state_dict({n: torch.from_numpy(v) for n, v in fill(names, shapes, seed, CLS_BIAS).items()})
+    weights = seeded(net, seed, CLS_BIAS)
     points = frame(seed)
     torch.set_num_threads(1)  # spconv 2.3.8's CPU scatter-add races on more threads (benchmarks/golden_mmdet3d.py)
     res, again = run(net, proc, post, points), run(net, proc, post, points)
@@ -231,10 +227,7 @@ def golden(root: Path, out: Path, seed: int = SEED) -> Path:
     for key in ("seg", "part"):  # the voxels' order is the voxelizer's: they are found by their centres
         sampled[f"{key}_xyz"] = res["xyz"][sampled[f"{key}_index"][:, 0]]
     path = out / "openpcdet_parta2.npz"
-    np.savez_compressed(path, rule=RULE, seed=seed, cls_bias=CLS_BIAS, head_scale=1.0, names=np.array(names),
-                        shape_dims=np.array([len(s) for s in shapes]),
-                        shape_values=np.array([d for s in shapes for d in s]),
-                        points=points, num_voxels=res["num_voxels"], **sampled,
+    np.savez_compressed(path, **weights, points=points, num_voxels=res["num_voxels"], **sampled,
                         **{k: res[k] for k in ("rois", "roi_scores", "roi_labels", "rcnn_cls", "rcnn_boxes", "boxes",
                                                "scores", "labels")}, classes=np.array(classes))
     car = int((res["labels"] == 0).sum())
@@ -244,15 +237,7 @@ def golden(root: Path, out: Path, seed: int = SEED) -> Path:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--openpcdet", type=Path, required=True, help="a source checkout of OpenPCDet")
-    p.add_argument("--out", type=Path, default=Path("tests/golden"))
-    p.add_argument("--seed", type=int, default=SEED, help="weight rule and frame seed")
-    a = p.parse_args(argv)
-    import_parta2(a.openpcdet)
-    a.out.mkdir(parents=True, exist_ok=True)
-    golden(a.openpcdet, a.out, a.seed)
-    return 0
+    return reference_main(argv, __doc__.splitlines()[0], import_parta2, golden, SEED)
 
 
 if __name__ == "__main__":

@@ -189,13 +189,35 @@ def sample(t: torch.Tensor, rng: np.random.Generator) -> tuple[np.ndarray, np.nd
     return pick.astype(np.int64), t.numpy()[tuple(pick.T)]
 
 
-def golden(root: Path, model: str, out: Path) -> Path:
-    cfg_file, seed, cls_bias, head_scale = MODELS[model]
-    net, proc, post = build(root / "tools" / "cfgs" / "kitti_models" / cfg_file)
+def seeded(net: nn.Module, seed: int, cls_bias: float, head_scale: float = 1.0) -> dict:
+    """Fill ``net``'s checkpoint tensors by the seeded rule; returns what a golden file records of them
+    (the rule, its arguments, the tensor names and shapes; no weights)."""
     state = net.state_dict()
     names, shapes = list(state), [tuple(t.shape) for t in state.values()]
     values = fill(names, shapes, seed, cls_bias, head_scale)
     net.load_state_dict({n: torch.from_numpy(v) for n, v in values.items()})
+    return dict(rule=RULE, seed=seed, cls_bias=cls_bias, head_scale=head_scale, names=np.array(names),
+                shape_dims=np.array([len(s) for s in shapes]), shape_values=np.array([d for s in shapes for d in s]))
+
+
+def reference_main(argv, description: str, importer, make, seed: int) -> int:
+    """The command line of a one-network generator: ``--openpcdet`` checkout, ``--out`` folder, ``--seed``;
+    ``importer(root)`` makes OpenPCDet's modules importable, ``make(root, out, seed)`` writes the file."""
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--openpcdet", type=Path, required=True, help="a source checkout of OpenPCDet")
+    p.add_argument("--out", type=Path, default=Path("tests/golden"))
+    p.add_argument("--seed", type=int, default=seed, help="weight rule and frame seed")
+    a = p.parse_args(argv)
+    importer(a.openpcdet)
+    a.out.mkdir(parents=True, exist_ok=True)
+    make(a.openpcdet, a.out, a.seed)
+    return 0
+
+
+def golden(root: Path, model: str, out: Path) -> Path:
+    cfg_file, seed, cls_bias, head_scale = MODELS[model]
+    net, proc, post = build(root / "tools" / "cfgs" / "kitti_models" / cfg_file)
+    weights = seeded(net, seed, cls_bias, head_scale)
     points = frame(seed)
     torch.set_num_threads(1)  # spconv 2.3.8's CPU scatter-add races on more threads (benchmarks/golden_mmdet3d.py)
     res = run(net, proc, post, points)
@@ -203,9 +225,7 @@ def golden(root: Path, model: str, out: Path) -> Path:
     bev_idx, bev_val = sample(res["bev"], rng)
     cls_idx, cls_val = sample(res["cls"], rng)
     path = out / f"openpcdet_{model}.npz"
-    np.savez_compressed(path, rule=RULE, seed=seed, cls_bias=cls_bias, head_scale=head_scale, names=np.array(names),
-                        shape_dims=np.array([len(s) for s in shapes]), shape_values=np.array([d for s in shapes for d in s]),
-                        points=points, num_voxels=res["num_voxels"], bev_index=bev_idx, bev_value=bev_val,
+    np.savez_compressed(path, **weights, points=points, num_voxels=res["num_voxels"], bev_index=bev_idx, bev_value=bev_val,
                         cls_index=cls_idx, cls_value=cls_val, boxes=res["boxes"], scores=res["scores"],
                         labels=res["labels"], classes=np.array(["Car", "Pedestrian", "Cyclist"]))
     print(f"{path}: {res['num_voxels']} voxels, {len(res['boxes'])} boxes "

@@ -354,6 +354,7 @@ IMPORT_EXAMPLE = """example:
 
 published networks: --from openpcdet --model pointpillars (tools/cfgs/kitti_models/pointpillar.yaml),
 --from openpcdet --model second (second.yaml), --from openpcdet --model parta2 (PartA2.yaml),
+--from openpcdet --model pv_rcnn (pv_rcnn.yaml),
 --from mmdet3d --model dv_second (configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py)"""
 
 
@@ -368,7 +369,7 @@ def _add_import(sub, quiet) -> None:
                                    "and writes nothing.")
     s.add_argument("--from", dest="source", required=True, choices=("openpcdet", "mmdet3d"),
                    help="the code base that wrote the checkpoint")
-    s.add_argument("--model", required=True, help="pointpillars, second or parta2 (openpcdet), dv_second (mmdet3d)")
+    s.add_argument("--model", required=True, help="pointpillars, second, parta2 or pv_rcnn (openpcdet), dv_second (mmdet3d)")
     s.add_argument("--checkpoint", required=True, help="the published .pth file")
     s.add_argument("--out", required=True, type=_path, help="the checkpoint (.pt) to write")
     s.add_argument("--force", action="store_true", help=FORCE_HELP)

@@ -133,8 +133,8 @@ def convert(path: Path, source: str, model: str, state: dict, module_meta: dict,
         t = state[ref]
         if kind == SPARSE and layouts[name] is not None and _layouts(t, sparse[name][2][0], ours[name].shape):
             t = sparse_weight(t, layouts[name])
-        if kind == FC and isinstance(t, torch.Tensor) and t.dim() == 3 and t.shape[-1] == 1:
-            t = t[..., 0]  # Conv1d(kernel 1) [out, in, 1] -> Linear [out, in]
+        if kind == FC and isinstance(t, torch.Tensor) and t.dim() in (3, 4) and set(t.shape[2:]) == {1}:
+            t = t.reshape(t.shape[:2])  # Conv1d / Conv2d of kernel 1, [out, in, 1(, 1)] -> Linear [out, in]
         if not isinstance(t, torch.Tensor) or t.shape != ours[name].shape:
             misfit.append(f"{ref} {tuple(getattr(t, 'shape', ()))} for {name} {tuple(ours[name].shape)}")
             continue

@@ -10,13 +10,14 @@ its layer j is our j - 1), ``kind`` how the tensor is laid out:
 - ``SPARSE``: a sparse-conv weight; spconv 2.x holds ``[out, kD, kH, kW, in]``, spconv 1.x (and
   MMCV's ops) ``[kD, kH, kW, in, out]``; ours is ``(K, in, out)`` with z slowest
   (``harness.import_weights.sparse_weight``).
-- ``FC``: a fully connected layer, OpenPCDet's RoI heads' ``Conv1d`` of kernel 1 (``[out, in, 1]``) for
-  our ``Linear`` (``[out, in]``); its BatchNorm tensors as they are.
+- ``FC``: a fully connected layer, OpenPCDet's RoI heads' ``Conv1d`` of kernel 1 (``[out, in, 1]``) or its
+  set abstractions' ``Conv2d`` of kernel 1 (``[out, in, 1, 1]``) for our ``Linear`` (``[out, in]``); its
+  BatchNorm tensors as they are.
 
 ``IGNORED`` names are bookkeeping, not weights (OpenPCDet's ``global_step``).
-Sources: OpenPCDet ``tools/cfgs/kitti_models/{pointpillar,second,PartA2}.yaml`` (``PillarVFE``,
+Sources: OpenPCDet ``tools/cfgs/kitti_models/{pointpillar,second,PartA2,pv_rcnn}.yaml`` (``PillarVFE``,
 ``VoxelBackBone8x``, ``UNetV2``, ``BaseBEVBackbone``, ``AnchorHeadSingle``, ``PointIntraPartOffsetHead``,
-``PartA2FCHead``); MMDetection3D 1.4
+``PartA2FCHead``, ``VoxelSetAbstraction``, ``PointHeadSimple``, ``PVRCNNHead``); MMDetection3D 1.4
 ``configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py``
 (``SparseEncoder``, ``SECOND``, ``SECONDFPN``, ``Anchor3DHead``).
 """
@@ -66,8 +67,15 @@ _OPENPCDET_UNET = [
     (r"backbone_3d\.conv5\.0\.1\." + BN, "unet.out.1.norm.{p}", {}, COPY),
 ]
 
+# RoIHeadTemplate's Conv1d(k=1) fc layers: SHARED_FC, then CLS_FC and REG_FC of two layers (index 7 is the output)
+_OPENPCDET_RCNN_FC = [
+    (r"roi_head\.shared_fc_layer\.(?P<i>\d+)\.(?P<p>.+)", "refine.shared.{i}.{p}", {}, FC),
+    (r"roi_head\.(?P<b>cls|reg)_layers\.7\." + CONV, "refine.{b}.{p}", {}, FC),
+    (r"roi_head\.(?P<b>cls|reg)_layers\.(?P<i>[0-6])\.(?P<p>.+)", "refine.{b}_fc.{i}.{p}", {}, FC),
+]
+
 # Part-A2's point head (CLS_FC, PART_FC empty: one Linear each) and PartA2FCHead: its SubM blocks on the
-# pooled grid, then Conv1d(k=1) fc layers (SHARED_FC, CLS_FC and REG_FC of two layers: index 7 is the output)
+# pooled grid, then the fc layers
 _OPENPCDET_PARTA2_HEADS = [
     (r"point_head\.cls_layers\.0\." + CONV, "seg_head.0.{p}", {}, COPY),
     (r"point_head\.part_reg_layers\.0\." + CONV, "part_head.0.{p}", {}, COPY),
@@ -75,9 +83,26 @@ _OPENPCDET_PARTA2_HEADS = [
     (r"roi_head\.conv_part\.(?P<j>[01])\.1\." + BN, "rcnn.part_branch.{j}.1.norm.{p}", {}, COPY),
     (r"roi_head\.conv_rpn\.(?P<j>[01])\.0\.weight", "rcnn.feat_branch.{j}.0.weight", {}, SPARSE),
     (r"roi_head\.conv_rpn\.(?P<j>[01])\.1\." + BN, "rcnn.feat_branch.{j}.1.norm.{p}", {}, COPY),
-    (r"roi_head\.shared_fc_layer\.(?P<i>\d+)\.(?P<p>.+)", "rcnn.refine.shared.{i}.{p}", {}, FC),
-    (r"roi_head\.(?P<b>cls|reg)_layers\.7\." + CONV, "rcnn.refine.{b}.{p}", {}, FC),
-    (r"roi_head\.(?P<b>cls|reg)_layers\.(?P<i>[0-6])\.(?P<p>.+)", "rcnn.refine.{b}_fc.{i}.{p}", {}, FC),
+    *_retarget(_OPENPCDET_RCNN_FC, {"refine.": "rcnn.refine."}),
+]
+
+
+def _set_abstraction(pattern: str, target: str) -> list:
+    """A StackSAModuleMSG's shared MLPs (Conv2d(k=1), BatchNorm2d, ReLU per layer) onto our SetAbstraction's
+    (Linear, BatchNorm, ReLU): ``pattern`` / ``target`` name the module."""
+    return [(pattern + r"\.mlps\.(?P<j>\d+)\.(?P<i>\d+)\.weight", target + ".mlps.{j}.{i}.weight", {}, FC),
+            (pattern + r"\.mlps\.(?P<j>\d+)\.(?P<i>\d+)\." + BN, target + ".mlps.{j}.{i}.{p}", {}, COPY)]
+
+
+# PV-RCNN's VoxelSetAbstraction (raw points, x_conv1..4, fusion), PointHeadSimple (the keypoint weights, CLS_FC
+# 256-256: Linear, BN, ReLU twice, then Linear) and PVRCNNHead (RoI-grid set abstraction, fc layers)
+_OPENPCDET_PVRCNN_HEADS = [
+    *_set_abstraction(r"pfe\.SA_rawpoints", "vsa.raw"),
+    *_set_abstraction(r"pfe\.SA_layers\.(?P<k>\d+)", "vsa.levels.{k}"),
+    (r"pfe\.vsa_point_feature_fusion\.(?P<i>[01])\.(?P<p>.+)", "vsa.fuse.{i}.{p}", {}, COPY),
+    (r"point_head\.cls_layers\.(?P<i>\d+)\.(?P<p>.+)", "vsa.weight.{i}.{p}", {}, COPY),
+    *_set_abstraction(r"roi_head\.roi_grid_pool_layer", "roi_grid.sa"),
+    *_OPENPCDET_RCNN_FC,
 ]
 
 _MMDET3D_ENCODER = [
@@ -105,12 +130,14 @@ TABLES = {
     ("openpcdet", "second"): [*_OPENPCDET_8X, *_OPENPCDET_BEV],
     ("openpcdet", "parta2"): [*_retarget(_OPENPCDET_8X, {"backbone3d.": "unet.encoder."}), *_OPENPCDET_UNET,
                               *_retarget(_OPENPCDET_BEV, {"head.": "rpn."}), *_OPENPCDET_PARTA2_HEADS],
+    ("openpcdet", "pv_rcnn"): [*_OPENPCDET_8X, *_retarget(_OPENPCDET_BEV, {"head.": "rpn."}), *_OPENPCDET_PVRCNN_HEADS],
     ("mmdet3d", "dv_second"): _MMDET3D_ENCODER,
 }
 CONFIG_FILES = {
     ("openpcdet", "pointpillars"): "OpenPCDet tools/cfgs/kitti_models/pointpillar.yaml",
     ("openpcdet", "second"): "OpenPCDet tools/cfgs/kitti_models/second.yaml",
     ("openpcdet", "parta2"): "OpenPCDet tools/cfgs/kitti_models/PartA2.yaml",
+    ("openpcdet", "pv_rcnn"): "OpenPCDet tools/cfgs/kitti_models/pv_rcnn.yaml",
     ("mmdet3d", "dv_second"): "MMDetection3D configs/dynamic_voxelization/second_dv_secfpn_8xb2-cosine-80e_kitti-3d-3class.py",
 }
 # Published configs of the same network for fewer classes: (source, model, the file's classes) -> config.

@@ -221,12 +221,15 @@ class SetAbstraction(nn.Module):
     """Multi-scale-grouping set abstraction: one ball query + shared MLP + max-pool per radius.
 
     forward(xyz (N, 3), feats (N, C) or None, centres (M, 3)) -> (M, sum of mlp[-1]).
-    Grouped coordinates are relative to the centre (metres); empty balls give zero features.
+    Grouped coordinates are relative to the centre (metres); empty balls give zero features, or
+    with ``zero_empty`` False the MLP's output of an all-zero group (OpenPCDet's stacked
+    ``QueryAndGroup`` zeroes an empty ball's coordinates and features, and its max-pool follows).
     """
 
     def __init__(self, in_channels: int, radii: Sequence[float], nsamples: Sequence[int],
-                 mlps: Sequence[Sequence[int]]):
+                 mlps: Sequence[Sequence[int]], zero_empty: bool = True):
         super().__init__()
+        self.zero_empty = zero_empty
         if not len(radii) == len(nsamples) == len(mlps):
             raise ValueError("SetAbstraction: radii, nsamples and mlps need the same length")
         self.radii = tuple(float(r) for r in radii)
@@ -239,9 +242,11 @@ class SetAbstraction(nn.Module):
         queries = ball_queries(xyz, centres, self.radii, self.nsamples)  # one distance GEMM
         for (idx, valid), mlp in zip(queries, self.mlps):  # (M, S), (M,)
             rel = group_points(xyz, idx) - centres[:, None, :]  # (M, S, 3) metres
+            if not self.zero_empty:  # an empty ball groups zeros (its features read the zero row already)
+                rel = rel * valid[:, None, None].to(rel.dtype)
             grouped = rel if feats is None else torch.cat([rel, group_points(feats, idx)], -1)
             pooled = mlp(grouped).amax(1)  # (M, C_out)
-            outs.append(pooled * valid[:, None].to(pooled.dtype))
+            outs.append(pooled * valid[:, None].to(pooled.dtype) if self.zero_empty else pooled)
         return torch.cat(outs, -1)
 
 

@@ -14,6 +14,10 @@ On a CPU the keypoints are sampled from, and the point branch of the VSA groups,
 points of the non-empty voxels (the mean VFE's output, one per voxel) rather than every raw
 point: a highway frame holds ~50k points in range but a few thousand voxels, and FPS plus ball
 query cost O(points x keypoints).
+
+The ``kitti`` profile is OpenPCDet's pv_rcnn.yaml network (``sotif-bench import``; docs/models.md):
+keypoints from the raw points, its VSA and keypoint weighting, its RoI grid (``models.pv_rcnn_published``),
+the 3-class RPN whose proposals keep their best class, and the Car boxes of one class-agnostic NMS.
 """
 from __future__ import annotations
 
@@ -30,12 +34,14 @@ from models.base import Detector, mean_over_frames
 from models.box_frame import inside_boxes
 from models.image_branch import bilinear_sample
 from models.losses import sigmoid_focal_loss
+from models.multiclass_head import PublishedHeadConfig
 from models.pointnet2 import PointBatchNorm, SetAbstraction, farthest_point_sample
+from models.pv_rcnn_published import PublishedRoIGridPool, PublishedVSA, in_range_points, sample_keypoints
 from models.recipe import Recipe
 from models.roi_head import (OutputConfig, ProposalConfig, RefineHead, RoITargetConfig,
                              finalize, propose, refine_loss, roi_support, sample_rois)
 from models.roi_pool import RoIGridPool
-from models.second import SECONDConfig
+from models.second import BACKBONE_8X, SECONDConfig
 from models.single_stage import bev_stages, frame_targets
 from models.sparse import SparseTensor, height_compress
 from models.vfe import MeanVFE
@@ -77,6 +83,16 @@ class PVRCNNConfig(SECONDConfig):
         return Grid(self.pc_range, self.voxel_size)
 
 
+@dataclass(frozen=True)
+class PublishedPVRCNNConfig(PVRCNNConfig):
+    """OpenPCDet's pv_rcnn.yaml network (``models.pv_rcnn_published``): keypoints from the raw points,
+    per-level ball-query sample counts and PointHeadSimple's layers (a class of its own, so that the other
+    profiles' configs keep their fields). ``level_nsamples`` is unused."""
+
+    level_nsample_sets: tuple[tuple[int, ...], ...] = ((16, 16), (16, 32), (16, 32), (16, 32))  # per level
+    kp_fc: tuple[int, ...] = (256, 256)  # POINT_HEAD.CLS_FC
+
+
 CONFIGS = {
     "tiny": PVRCNNConfig(
         pc_range=(0.0, -12.8, -3.0, 25.6, 12.8, 1.8), voxel_size=(0.8, 0.8, 0.4), max_voxels=4000,
@@ -90,22 +106,19 @@ CONFIGS = {
         grid_nsamples=(8, 8), grid_mlps=((8,), (8,)), fc=(32,), branch_fc=(32,),
         targets=RoITargetConfig(per_frame=16)),
     "compact": PVRCNNConfig(),
-    "kitti": PVRCNNConfig(  # OpenPCDet tools/cfgs/kitti_models/pv_rcnn.yaml
+    "kitti": PublishedPVRCNNConfig(  # OpenPCDet tools/cfgs/kitti_models/pv_rcnn.yaml (docs/models.md)
         pc_range=(0.0, -40.0, -3.0, 70.4, 40.0, 1.0), voxel_size=(0.05, 0.05, 0.1),
         max_voxels=40000,  # OpenPCDet's test-time cap (16000 in training)
-        # a 40-voxel-deep grid (OpenPCDet pads it to 41) with stage-3 z padding 1 ends at depth 2:
-        # 256 BEV channels, as OpenPCDet's NUM_BEV_FEATURES
-        backbone3d=VoxelBackboneConfig(16, (StageSpec(32, (2, 2, 2), (1, 1, 1), 2),
-                                            StageSpec(64, (2, 2, 2), (1, 1, 1), 2),
-                                            StageSpec(64, (2, 2, 2), (1, 1, 1), 2)), 128, (0, 0, 0)),
+        backbone3d=BACKBONE_8X,  # VoxelBackBone8x: 41 cells deep, 256 BEV channels
         layers=(5, 5), strides=(1, 2), filters=(128, 256), upsample_strides=(1, 2),
-        upsample_filters=(256, 256), head=HeadConfig(anchor_z=-1.0, nms_pre=9000, max_out=500),
+        upsample_filters=(256, 256), head=PublishedHeadConfig(nms_pre=4096, nms_iou=0.1, max_out=500),
         proposals_train=ProposalConfig(9000, 0.8, 512), proposals_test=ProposalConfig(1024, 0.7, 100),
         keypoints=2048, raw_radii=(0.4, 0.8), raw_mlps=((16, 16), (16, 16)), levels=(0, 1, 2, 3),
         level_radii=((0.4, 0.8), (0.8, 1.2), (1.2, 2.4), (2.4, 4.8)), level_nsamples=(16, 32),
         kp_channels=128, grid=6, grid_mlps=((64, 64), (64, 64)), fc=(256, 256), branch_fc=(256, 256),
         targets=RoITargetConfig(per_frame=128),
-        output=OutputConfig(score="rcnn")),  # the stage-2 confidence alone, as OpenPCDet
+        # the stage-2 confidence alone, boxes of every RoI, sizes uncapped, as OpenPCDet
+        output=OutputConfig(score="rcnn", nms_pre=4096, max_out=500, max_log_size=None, drop_empty=False)),
 }
 # compact: 6 epochs from the run's SECOND (at SECOND's 0.2 m voxels from a 6-epoch SECOND val 93.2; cold at
 # 0.4 m 68.1 after 8 epochs and 78.8 after 16); kitti: OpenPCDet's pv_rcnn.yaml, OPTIMIZATION.LR 0.01. The RPN
@@ -184,9 +197,16 @@ class PVRCNN(Detector):
                                                cfg.strides, cfg.filters, cfg.upsample_strides, cfg.upsample_filters)
         bev_channels = cfg.backbone3d.out_channels * output_shape(self.grid.shape, cfg.backbone3d)[0]
         channels = [cfg.backbone3d.stem_channels] + [s.channels for s in cfg.backbone3d.stages]
-        self.vsa = VoxelSetAbstraction(cfg, [channels[i] for i in cfg.levels], bev_channels)
-        self.roi_grid = RoIGridPool(cfg.kp_channels, cfg.grid, cfg.grid_radii, cfg.grid_nsamples,
-                                    cfg.grid_mlps)
+        self.published = isinstance(cfg, PublishedPVRCNNConfig)
+        if self.published:
+            bev_stride = self.grid.shape[2] // output_shape(self.grid.shape, cfg.backbone3d)[2]
+            self.vsa = PublishedVSA(cfg, [channels[i] for i in cfg.levels], bev_channels, bev_stride)
+        else:
+            self.vsa = VoxelSetAbstraction(cfg, [channels[i] for i in cfg.levels], bev_channels)
+        pool = PublishedRoIGridPool if self.published else RoIGridPool
+        self.roi_grid = pool(cfg.kp_channels, cfg.grid, cfg.grid_radii, cfg.grid_nsamples, cfg.grid_mlps)
+        # the Car RoIs' label (published 3-class RPN), or None: every RoI is reported
+        self.reported = self.rpn.car if isinstance(cfg.head, PublishedHeadConfig) else None
         self.refine = RefineHead(self.roi_grid.out_channels * cfg.grid ** 3, cfg.fc, cfg.branch_fc, cfg.dropout)
         self.sampling_rng = np.random.default_rng(cfg.seed)
 
@@ -197,23 +217,30 @@ class PVRCNN(Detector):
         means = self.vfe(voxels)  # (V, 4) mean x, y, z, intensity of each voxel's points
         out, levels = self.backbone3d(SparseTensor(means, voxels.coords, voxels.shape))
         bev = height_compress(out)  # (1, C*D, H, W)
-        keypoints = means[farthest_point_sample(means[:, :3], self.cfg.keypoints), :3]  # (P, 3)
-        sources = [(level_centres(levels[i], self.grid), levels[i].features) for i in self.cfg.levels]
-        kp_feats, kp_logit = self.vsa(keypoints, means, sources, bev)
+        if self.published:  # OpenPCDet: keypoints from the raw points, which the raw-point SA groups
+            src = in_range_points(points, self.cfg.pc_range)  # (N', 4)
+            keypoints = sample_keypoints(src, self.cfg.keypoints)  # (P, 3)
+            sources = [(self.grid.centres(levels[i].coords, 2 ** i), levels[i].features) for i in self.cfg.levels]
+        else:
+            src = means
+            keypoints = means[farthest_point_sample(means[:, :3], self.cfg.keypoints), :3]  # (P, 3)
+            sources = [(level_centres(levels[i], self.grid), levels[i].features) for i in self.cfg.levels]
+        kp_feats, kp_logit = self.vsa(keypoints, src, sources, bev)
         return keypoints, kp_feats, kp_logit, self.backbone2d(bev), means[:, :3]
 
     def stage2(self, rois: Tensor, keypoints: Tensor, kp_feats: Tensor) -> tuple[Tensor, Tensor]:
         """rois (K, 7) -> IoU-guided logit (K,), residuals (K, 7)."""
-        pooled = self.roi_grid(rois, keypoints, kp_feats)  # (K, g^3, C)
+        pooled = self.roi_grid(rois, keypoints, kp_feats)  # (K, g^3, C); kitti (K, C, g^3)
         return self.refine(pooled.flatten(1))
 
     def forward(self, points: Tensor):
         """points (N, 4) -> boxes (M, 7), scores (M,), rois (K, 7), roi_scores (K,), rcnn_boxes (K, 7)."""
         keypoints, kp_feats, _, bev, voxel_xyz = self.stage1(points)
-        rois, roi_scores, _ = propose(self.rpn, bev, self.cfg.proposals_test)
+        rois, roi_scores, roi_labels = propose(self.rpn, bev, self.cfg.proposals_test)
         logit, deltas = self.stage2(rois, keypoints, kp_feats)
+        labels = None if self.reported is None else roi_labels
         boxes, scores, rcnn_boxes = finalize(rois, roi_scores, logit, deltas, self.cfg.output,
-                                             roi_support(voxel_xyz, rois))
+                                             roi_support(voxel_xyz, rois), labels, self.reported or 0)
         return boxes, scores, rois, roi_scores, rcnn_boxes
 
     def frame_loss(self, sample: Sample, device) -> dict[str, Tensor]:

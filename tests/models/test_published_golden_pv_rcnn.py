@@ -1,0 +1,95 @@
+"""The imported PV-RCNN against golden data of OpenPCDet's own modules (``benchmarks/golden_pvrcnn.py``:
+pv_rcnn.yaml's network on CPU, random weights by the seeded rule in its checkpoint layout, one frame on one
+thread, CPU stand-ins for its farthest point sampling, ball query, grouping and rotated NMS). The checkpoint
+is rebuilt here from the rule, imported through ``sotif-bench import``'s code and run: the bird's-eye map,
+the RPN class logits, the keypoints, the keypoint features before and after the fusion and their weights,
+the 100 proposals, the RCNN outputs of each proposal and the final Car boxes must match."""
+import collections
+import math
+
+import numpy as np
+import torch
+
+from harness.cli import main
+from models.pv_rcnn_published import in_range_points
+from models.roi_head import finalize, propose
+from tests.harness.test_import_weights import openpcdet_file
+from tests.models.test_published_golden import assert_same_boxes, car_boxes, imported, load
+
+TOL = dict(rtol=1e-4, atol=1e-4)
+
+
+def matching(rois: np.ndarray, want: np.ndarray) -> np.ndarray:
+    """(K,) the row of ``rois`` (K, 7) nearest each row of ``want`` (K, 7) (yaw modulo 2 pi), asserting each
+    is within 1e-4 and no row is taken twice."""
+    diff = np.abs(rois[None] - want[:, None])  # (K, K, 7)
+    diff[..., 6] = np.abs(np.remainder(diff[..., 6] + math.pi, 2 * math.pi) - math.pi)
+    worst = diff.max(-1)  # (K, K)
+    rows = worst.argmin(1)
+    assert worst[np.arange(len(want)), rows].max() <= 1e-4 and len(set(rows)) == len(rows)
+    return rows
+
+
+def captured(module: torch.nn.Module, store: dict, key: str):
+    """A forward hook keeping the module's first input under ``key`` and its output under ``key + '_out'``."""
+    def hook(_, inputs, output):
+        store[key], store[key + "_out"] = inputs[0], output
+    return module.register_forward_hook(hook)
+
+
+def test_imported_pv_rcnn_is_openpcdet(tmp_path):
+    net, g = imported("openpcdet", "pv_rcnn", tmp_path)
+    points = torch.from_numpy(g["points"])
+    seen = {}
+    hooks = [captured(net.backbone2d, seen, "bev"), captured(net.vsa.fuse, seen, "before"),
+             captured(net.vsa.weight, seen, "logit")]
+    with torch.no_grad():
+        keypoints, kp_feats, _, feats2d, _ = net.stage1(points)
+        cls = net.rpn(feats2d)[0]  # (A, 3) class logits
+        rois, roi_scores, roi_labels = propose(net.rpn, feats2d, net.cfg.proposals_test)
+        logit, deltas = net.stage2(rois, keypoints, kp_feats)  # the rest of PVRCNN.forward
+        boxes, scores, rcnn_boxes = finalize(rois, roi_scores, logit, deltas, net.cfg.output, None, roi_labels,
+                                             net.reported)
+    for h in hooks:
+        h.remove()
+    want_keypoints = in_range_points(points, net.cfg.pc_range)[torch.from_numpy(g["keypoint_index"]).long(), :3]
+    assert torch.equal(keypoints, want_keypoints)  # the same FPS picks, bit for bit
+    np.testing.assert_allclose(seen["bev"][0].numpy()[tuple(g["bev_index"].T)], g["bev_value"], **TOL)
+    np.testing.assert_allclose(cls.numpy()[tuple(g["cls_index"].T)], g["cls_value"], **TOL)
+    np.testing.assert_allclose(seen["before"].numpy()[tuple(g["before_index"].T)], g["before_value"], **TOL)
+    np.testing.assert_allclose(seen["before_out"].numpy()[tuple(g["fused_index"].T)], g["fused_value"], **TOL)
+    np.testing.assert_allclose(torch.sigmoid(seen["logit_out"][:, 0]).numpy(), g["weights"], **TOL)
+    # proposals: OpenPCDet keeps the RPN's logit as the RoI score
+    want_scores = torch.sigmoid(torch.from_numpy(g["roi_scores"])).numpy()
+    assert_same_boxes(rois.numpy(), roi_scores.numpy(), g["rois"], want_scores)
+    order, want_order = np.argsort(-roi_scores.numpy(), kind="stable"), np.argsort(-want_scores, kind="stable")
+    np.testing.assert_array_equal(roi_labels.numpy()[order], g["roi_labels"][want_order])
+    # the RCNN of each proposal
+    rows = matching(rois.numpy(), g["rois"])  # ours in the reference's RoI order
+    np.testing.assert_allclose(logit.numpy()[rows], g["rcnn_cls"], **TOL)
+    got, want = rcnn_boxes.numpy()[rows], g["rcnn_boxes"]  # (K, 7) each
+    turn = np.remainder(got[:, 6] - want[:, 6] + math.pi, 2 * math.pi) - math.pi
+    np.testing.assert_allclose(got[:, :6], want[:, :6], rtol=0, atol=1e-3)
+    assert np.abs(turn).max() <= 1e-3
+    want_boxes, want_final = car_boxes(g)
+    assert len(want_boxes) > 0
+    assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_final)
+
+
+def test_another_network_exits_2_naming_the_mismatch(tmp_path, capsys):
+    """Part-A2's file, and PV-RCNN's with a per-class keypoint head (CLASS_AGNOSTIC False), are refused."""
+    g = load("openpcdet", "pv_rcnn")
+    parta2 = load("openpcdet", "parta2")
+    other = collections.OrderedDict((str(n), torch.zeros(s)) for n, s in zip(parta2["names"], parta2["shapes"]))
+    per_class = collections.OrderedDict((str(n), torch.zeros(s)) for n, s in zip(g["names"], g["shapes"]))
+    per_class["point_head.cls_layers.6.weight"] = torch.zeros(3, 256)
+    per_class["point_head.cls_layers.6.bias"] = torch.zeros(3)
+    cases = (("parta2", other, "tensors of ours no reference tensor fills"),
+             ("per_class", per_class, "point_head.cls_layers.6.weight (3, 256) for vsa.weight.6.weight (1, 256)"))
+    for name, state, want in cases:
+        openpcdet_file(tmp_path / f"{name}.pth", state)
+        assert main(["import", "--from", "openpcdet", "--model", "pv_rcnn", "--checkpoint",
+                     str(tmp_path / f"{name}.pth"), "--out", str(tmp_path / "o.pt")]) == 2
+        err = capsys.readouterr().err
+        assert "does not hold the network of OpenPCDet tools/cfgs/kitti_models/pv_rcnn.yaml" in err and want in err, err
+        assert not (tmp_path / "o.pt").exists()
