@@ -34,7 +34,7 @@ import torch
 from torch import nn
 
 from benchmarks.golden_published import frame as published_frame
-from benchmarks.golden_published import import_openpcdet, iou, polygon, reference_main, sample, seeded, voxelize
+from benchmarks.golden_published import import_openpcdet, openpcdet_config, iou, polygon, reference_main, sample, seeded, voxelize
 
 SEED, CLS_BIAS = 500, -2.0
 GROUND = 8000
@@ -109,8 +109,6 @@ def import_parta2(root: Path) -> None:
 
 def build(root: Path):
     """Part-A2's modules under OpenPCDet's module names, its data-processing and post-processing configs."""
-    import yaml
-    from easydict import EasyDict
     from pcdet.models.backbones_2d.base_bev_backbone import BaseBEVBackbone
     from pcdet.models.backbones_2d.map_to_bev.height_compression import HeightCompression
     from pcdet.models.backbones_3d.spconv_unet import UNetV2
@@ -119,13 +117,7 @@ def build(root: Path):
     from pcdet.models.dense_heads.point_intra_part_head import PointIntraPartOffsetHead
     from pcdet.models.roi_heads.partA2_head import PartA2FCHead
 
-    cfg_path = root / "tools" / "cfgs" / "kitti_models" / "PartA2.yaml"
-    cfg = EasyDict(yaml.safe_load(cfg_path.read_text()))
-    base = EasyDict(yaml.safe_load((cfg_path.parents[2] / cfg.DATA_CONFIG._BASE_CONFIG_).read_text()))
-    cfg.DATA_CONFIG = EasyDict({**base, **cfg.DATA_CONFIG})
-    data = {d["NAME"]: d for d in cfg.DATA_CONFIG.DATA_PROCESSOR}["transform_points_to_voxels"]
-    proc = EasyDict(POINT_CLOUD_RANGE=cfg.DATA_CONFIG.POINT_CLOUD_RANGE, VOXEL_SIZE=data.VOXEL_SIZE,
-                    MAX_POINTS_PER_VOXEL=data.MAX_POINTS_PER_VOXEL, MAX_NUMBER_OF_VOXELS=data.MAX_NUMBER_OF_VOXELS.test)
+    cfg, proc = openpcdet_config(root / "tools" / "cfgs" / "kitti_models" / "PartA2.yaml")
     r, vs, m = np.array(proc.POINT_CLOUD_RANGE), np.array(proc.VOXEL_SIZE), cfg.MODEL
     grid = np.round((r[3:] - r[:3]) / vs).astype(np.int64)
     n = len(cfg.CLASS_NAMES)

@@ -126,10 +126,22 @@ def voxelize(points: np.ndarray, cfg) -> dict:
             "voxel_coords": torch.from_numpy(np.pad(coords, ((0, 0), (1, 0)))).int(), "batch_size": 1}
 
 
-def build(cfg_path: Path):
-    """The reference detector's modules under OpenPCDet's own module names, and its configs."""
+def openpcdet_config(cfg_path: Path):
+    """(cfg, proc) of an OpenPCDet model config: the config with the data set config it extends merged in, and
+    the voxelisation settings of its test-time data processor."""
     import yaml
     from easydict import EasyDict
+    cfg = EasyDict(yaml.safe_load(cfg_path.read_text()))
+    base = EasyDict(yaml.safe_load((cfg_path.parents[2] / cfg.DATA_CONFIG._BASE_CONFIG_).read_text()))
+    cfg.DATA_CONFIG = EasyDict({**base, **cfg.DATA_CONFIG})  # the data set config the model's extends
+    data = {d["NAME"]: d for d in cfg.DATA_CONFIG.DATA_PROCESSOR}["transform_points_to_voxels"]
+    proc = EasyDict(POINT_CLOUD_RANGE=cfg.DATA_CONFIG.POINT_CLOUD_RANGE, VOXEL_SIZE=data.VOXEL_SIZE,
+                    MAX_POINTS_PER_VOXEL=data.MAX_POINTS_PER_VOXEL, MAX_NUMBER_OF_VOXELS=data.MAX_NUMBER_OF_VOXELS.test)
+    return cfg, proc
+
+
+def build(cfg_path: Path):
+    """The reference detector's modules under OpenPCDet's own module names, and its configs."""
     from pcdet.models.backbones_2d.base_bev_backbone import BaseBEVBackbone
     from pcdet.models.backbones_2d.map_to_bev.height_compression import HeightCompression
     from pcdet.models.backbones_2d.map_to_bev.pointpillar_scatter import PointPillarScatter
@@ -138,12 +150,7 @@ def build(cfg_path: Path):
     from pcdet.models.backbones_3d.vfe.pillar_vfe import PillarVFE
     from pcdet.models.dense_heads.anchor_head_single import AnchorHeadSingle
 
-    cfg = EasyDict(yaml.safe_load(cfg_path.read_text()))
-    base = EasyDict(yaml.safe_load((cfg_path.parents[2] / cfg.DATA_CONFIG._BASE_CONFIG_).read_text()))
-    cfg.DATA_CONFIG = EasyDict({**base, **cfg.DATA_CONFIG})  # the data set config the model's extends
-    data = {d["NAME"]: d for d in cfg.DATA_CONFIG.DATA_PROCESSOR}["transform_points_to_voxels"]
-    proc = EasyDict(POINT_CLOUD_RANGE=cfg.DATA_CONFIG.POINT_CLOUD_RANGE, VOXEL_SIZE=data.VOXEL_SIZE,
-                    MAX_POINTS_PER_VOXEL=data.MAX_POINTS_PER_VOXEL, MAX_NUMBER_OF_VOXELS=data.MAX_NUMBER_OF_VOXELS.test)
+    cfg, proc = openpcdet_config(cfg_path)
     r, vs, m = np.array(proc.POINT_CLOUD_RANGE), np.array(proc.VOXEL_SIZE), cfg.MODEL
     grid = np.round((r[3:] - r[:3]) / vs).astype(np.int64)
     net = nn.Module()

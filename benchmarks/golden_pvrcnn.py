@@ -39,7 +39,7 @@ import torch
 from torch import nn
 
 from benchmarks.golden_parta2 import TieError, capped_tie, frame, order_free
-from benchmarks.golden_published import import_openpcdet, reference_main, sample, seeded, voxelize
+from benchmarks.golden_published import import_openpcdet, openpcdet_config, reference_main, sample, seeded, voxelize
 
 SEED, CLS_BIAS = 621, -2.0
 BALL_MARGIN = 1e-5  # metres: a keypoint this close to a RoI grid ball's surface makes the frame fragile
@@ -142,8 +142,6 @@ def import_pvrcnn(root: Path) -> None:
 
 def build(root: Path):
     """PV-RCNN's modules under OpenPCDet's module names, its data-processing and post-processing configs."""
-    import yaml
-    from easydict import EasyDict
     from pcdet.models.backbones_2d.base_bev_backbone import BaseBEVBackbone
     from pcdet.models.backbones_2d.map_to_bev.height_compression import HeightCompression
     from pcdet.models.backbones_3d.pfe.voxel_set_abstraction import VoxelSetAbstraction
@@ -153,13 +151,7 @@ def build(root: Path):
     from pcdet.models.dense_heads.point_head_simple import PointHeadSimple
     from pcdet.models.roi_heads.pvrcnn_head import PVRCNNHead
 
-    cfg_path = root / "tools" / "cfgs" / "kitti_models" / "pv_rcnn.yaml"
-    cfg = EasyDict(yaml.safe_load(cfg_path.read_text()))
-    base = EasyDict(yaml.safe_load((cfg_path.parents[2] / cfg.DATA_CONFIG._BASE_CONFIG_).read_text()))
-    cfg.DATA_CONFIG = EasyDict({**base, **cfg.DATA_CONFIG})
-    data = {d["NAME"]: d for d in cfg.DATA_CONFIG.DATA_PROCESSOR}["transform_points_to_voxels"]
-    proc = EasyDict(POINT_CLOUD_RANGE=cfg.DATA_CONFIG.POINT_CLOUD_RANGE, VOXEL_SIZE=data.VOXEL_SIZE,
-                    MAX_POINTS_PER_VOXEL=data.MAX_POINTS_PER_VOXEL, MAX_NUMBER_OF_VOXELS=data.MAX_NUMBER_OF_VOXELS.test)
+    cfg, proc = openpcdet_config(root / "tools" / "cfgs" / "kitti_models" / "pv_rcnn.yaml")
     # as DatasetTemplate: the range a float32 array, the voxel size the config's list
     r, vs, m = np.array(proc.POINT_CLOUD_RANGE, np.float32), list(proc.VOXEL_SIZE), cfg.MODEL
     grid = np.round((r[3:] - r[:3]) / np.array(vs)).astype(np.int64)
