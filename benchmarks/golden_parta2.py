@@ -34,7 +34,8 @@ import torch
 from torch import nn
 
 from benchmarks.golden_published import frame as published_frame
-from benchmarks.golden_published import import_openpcdet, openpcdet_config, iou, polygon, reference_main, sample, seeded, voxelize
+from benchmarks.golden_published import (import_openpcdet, iou, openpcdet_config, polygon, reference_main, repeatable,
+                                         sampled_entries, seeded, voxelize)
 
 SEED, CLS_BIAS = 500, -2.0
 GROUND = 8000
@@ -207,15 +208,8 @@ def golden(root: Path, out: Path, seed: int = SEED) -> Path:
     net, proc, post, classes = build(root)
     weights = seeded(net, seed, CLS_BIAS)
     points = frame(seed)
-    torch.set_num_threads(1)  # spconv 2.3.8's CPU scatter-add races on more threads (benchmarks/golden_mmdet3d.py)
-    res, again = run(net, proc, post, points), run(net, proc, post, points)
-    differ = [k for k in res if not np.array_equal(np.asarray(res[k]), np.asarray(again[k]))]
-    if differ:
-        raise RuntimeError(f"two runs of the reference differ in {', '.join(differ)}: no golden data written")
-    rng = np.random.Generator(np.random.PCG64(seed + 1))
-    sampled = {}
-    for key in ("bev", "cls", "seg", "part"):
-        sampled[f"{key}_index"], sampled[f"{key}_value"] = sample(res[key], rng)
+    res = repeatable(run, net, proc, post, points)
+    sampled = sampled_entries(res, ("bev", "cls", "seg", "part"), seed + 1)
     for key in ("seg", "part"):  # the voxels' order is the voxelizer's: they are found by their centres
         sampled[f"{key}_xyz"] = res["xyz"][sampled[f"{key}_index"][:, 0]]
     path = out / "openpcdet_parta2.npz"

@@ -207,6 +207,27 @@ def seeded(net: nn.Module, seed: int, cls_bias: float, head_scale: float = 1.0) 
                 shape_dims=np.array([len(s) for s in shapes]), shape_values=np.array([d for s in shapes for d in s]))
 
 
+def repeatable(run, *args) -> dict:
+    """``run(*args)``'s result, run twice on one thread (spconv 2.3.8's CPU scatter-add races on more,
+    benchmarks/golden_mmdet3d.py); RuntimeError, and no golden data, when the two runs differ."""
+    torch.set_num_threads(1)
+    res, again = run(*args), run(*args)
+    differ = [k for k in res if not np.array_equal(np.asarray(res[k]), np.asarray(again[k]))]
+    if differ:
+        raise RuntimeError(f"two runs of the reference differ in {', '.join(differ)}: no golden data written")
+    return res
+
+
+def sampled_entries(res: dict, keys, seed: int) -> dict:
+    """``<key>_index`` and ``<key>_value`` of entries of each map ``res[key]`` sampled by ``sample`` (the
+    stream ``seed``, in ``keys``' order)."""
+    rng = np.random.Generator(np.random.PCG64(seed))
+    out = {}
+    for key in keys:
+        out[f"{key}_index"], out[f"{key}_value"] = sample(res[key], rng)
+    return out
+
+
 def reference_main(argv, description: str, importer, make, seed: int) -> int:
     """The command line of a one-network generator: ``--openpcdet`` checkout, ``--out`` folder, ``--seed``;
     ``importer(root)`` makes OpenPCDet's modules importable, ``make(root, out, seed)`` writes the file."""

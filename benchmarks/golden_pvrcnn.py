@@ -39,7 +39,8 @@ import torch
 from torch import nn
 
 from benchmarks.golden_parta2 import TieError, capped_tie, frame, order_free
-from benchmarks.golden_published import import_openpcdet, openpcdet_config, reference_main, sample, seeded, voxelize
+from benchmarks.golden_published import (import_openpcdet, openpcdet_config, reference_main, repeatable, sampled_entries,
+                                         seeded, voxelize)
 
 SEED, CLS_BIAS = 621, -2.0
 BALL_MARGIN = 1e-5  # metres: a keypoint this close to a RoI grid ball's surface makes the frame fragile
@@ -269,15 +270,8 @@ def golden(root: Path, out: Path, seed: int = SEED) -> Path:
     net, proc, post, classes = build(root)
     weights = seeded(net, seed, CLS_BIAS)
     points = frame(seed)
-    torch.set_num_threads(1)  # spconv 2.3.8's CPU scatter-add races on more threads (benchmarks/golden_mmdet3d.py)
-    res, again = run(net, proc, post, points), run(net, proc, post, points)
-    differ = [k for k in res if not np.array_equal(np.asarray(res[k]), np.asarray(again[k]))]
-    if differ:
-        raise RuntimeError(f"two runs of the reference differ in {', '.join(differ)}: no golden data written")
-    rng = np.random.Generator(np.random.PCG64(seed + 1))
-    sampled = {}
-    for key in ("bev", "cls", "before", "fused"):
-        sampled[f"{key}_index"], sampled[f"{key}_value"] = sample(res[key], rng)
+    res = repeatable(run, net, proc, post, points)
+    sampled = sampled_entries(res, ("bev", "cls", "before", "fused"), seed + 1)
     path = out / "openpcdet_pv_rcnn.npz"
     np.savez_compressed(path, **weights, points=points, **sampled,
                         **{k: res[k] for k in ("num_voxels", "keypoint_index", "fps_ties", "ball_margin", "weights",

@@ -68,6 +68,26 @@ def assert_same_boxes(boxes, scores, want_boxes, want_scores):
     assert box <= 1e-3 and score <= 1e-4, (box, score)
 
 
+def assert_two_stage(g: dict, proposals, rcnn, final, tol: dict) -> None:
+    """A two-stage network against golden data ``g``: ``proposals`` (rois, scores, labels: OpenPCDet keeps the
+    RPN's logit as the RoI score, and labels are compared in score order); ``rcnn`` (class logits, refined boxes)
+    of the reference's RoIs in its order, within ``tol`` and 1e-3 m / rad; ``final`` (boxes, scores): the Car ones."""
+    rois, roi_scores, roi_labels = (np.asarray(t) for t in proposals)
+    want_scores = torch.sigmoid(torch.from_numpy(g["roi_scores"])).numpy()
+    assert_same_boxes(rois, roi_scores, g["rois"], want_scores)
+    order, want_order = np.argsort(-roi_scores, kind="stable"), np.argsort(-want_scores, kind="stable")
+    np.testing.assert_array_equal(roi_labels[order], g["roi_labels"][want_order])
+    logit, got = (np.asarray(t) for t in rcnn)
+    np.testing.assert_allclose(logit, g["rcnn_cls"], **tol)
+    want = g["rcnn_boxes"]
+    turn = np.remainder(got[:, 6] - want[:, 6] + math.pi, 2 * math.pi) - math.pi
+    np.testing.assert_allclose(got[:, :6], want[:, :6], rtol=0, atol=1e-3)
+    assert np.abs(turn).max() <= 1e-3
+    want_boxes, want_final = car_boxes(g)
+    assert len(want_boxes) > 0
+    assert_same_boxes(*(np.asarray(t) for t in final), want_boxes, want_final)
+
+
 def assert_matches_golden(net, g: dict) -> None:
     """``net`` on the golden frame against the reference: sampled BEV map and class logits, final Car boxes."""
     points = torch.from_numpy(g["points"])

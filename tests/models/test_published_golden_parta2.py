@@ -5,7 +5,6 @@ from the rule, imported through ``sotif-bench import``'s code and run: the bird'
 class logits, the voxels' segmentation and part scores, the 100 proposals, the RCNN outputs of the
 reference's proposals and the final Car boxes must match."""
 import collections
-import math
 
 import numpy as np
 import torch
@@ -14,7 +13,7 @@ from harness.cli import main
 from models.roi_head import decode_canonical, finalize, propose, roi_support
 from tests.harness import published_layouts as layouts
 from tests.harness.test_import_weights import openpcdet_file
-from tests.models.test_published_golden import assert_same_boxes, car_boxes, imported, load
+from tests.models.test_published_golden import assert_two_stage, imported, load
 
 TOL = dict(rtol=1e-4, atol=1e-4)
 
@@ -49,20 +48,8 @@ def test_imported_parta2_is_openpcdet(tmp_path):
     np.testing.assert_allclose(torch.sigmoid(seg).numpy()[rows], g["seg_value"], **TOL)
     rows = by_centre(xyz, g["part_xyz"])
     np.testing.assert_allclose(torch.sigmoid(part).numpy()[rows, g["part_index"][:, 1]], g["part_value"], **TOL)
-    # proposals: OpenPCDet keeps the RPN's logit as the RoI score
-    want_scores = torch.sigmoid(torch.from_numpy(g["roi_scores"])).numpy()
-    assert_same_boxes(rois.numpy(), roi_scores.numpy(), g["rois"], want_scores)
-    order, want_order = np.argsort(-roi_scores.numpy(), kind="stable"), np.argsort(-want_scores, kind="stable")
-    np.testing.assert_array_equal(roi_labels.numpy()[order], g["roi_labels"][want_order])
-    # the RCNN on the reference's proposals
-    np.testing.assert_allclose(logit.numpy(), g["rcnn_cls"], **TOL)
-    got, want = rcnn_boxes.numpy(), g["rcnn_boxes"]  # (K, 7) each, the reference's RoI order
-    turn = np.remainder(got[:, 6] - want[:, 6] + math.pi, 2 * math.pi) - math.pi
-    np.testing.assert_allclose(got[:, :6], want[:, :6], rtol=0, atol=1e-3)
-    assert np.abs(turn).max() <= 1e-3
-    want_boxes, want_final = car_boxes(g)
-    assert len(want_boxes) > 0
-    assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_final)
+    # the proposals; the RCNN on the reference's proposals; the final Car boxes
+    assert_two_stage(g, (rois, roi_scores, roi_labels), (logit, rcnn_boxes), (boxes, scores), TOL)
 
 
 def test_another_network_exits_2_naming_the_mismatch(tmp_path, capsys):

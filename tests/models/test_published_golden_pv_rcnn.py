@@ -14,7 +14,7 @@ from harness.cli import main
 from models.pv_rcnn_published import in_range_points
 from models.roi_head import finalize, propose
 from tests.harness.test_import_weights import openpcdet_file
-from tests.models.test_published_golden import assert_same_boxes, car_boxes, imported, load
+from tests.models.test_published_golden import assert_two_stage, imported, load
 
 TOL = dict(rtol=1e-4, atol=1e-4)
 
@@ -59,21 +59,9 @@ def test_imported_pv_rcnn_is_openpcdet(tmp_path):
     np.testing.assert_allclose(seen["before"].numpy()[tuple(g["before_index"].T)], g["before_value"], **TOL)
     np.testing.assert_allclose(seen["before_out"].numpy()[tuple(g["fused_index"].T)], g["fused_value"], **TOL)
     np.testing.assert_allclose(torch.sigmoid(seen["logit_out"][:, 0]).numpy(), g["weights"], **TOL)
-    # proposals: OpenPCDet keeps the RPN's logit as the RoI score
-    want_scores = torch.sigmoid(torch.from_numpy(g["roi_scores"])).numpy()
-    assert_same_boxes(rois.numpy(), roi_scores.numpy(), g["rois"], want_scores)
-    order, want_order = np.argsort(-roi_scores.numpy(), kind="stable"), np.argsort(-want_scores, kind="stable")
-    np.testing.assert_array_equal(roi_labels.numpy()[order], g["roi_labels"][want_order])
-    # the RCNN of each proposal
-    rows = matching(rois.numpy(), g["rois"])  # ours in the reference's RoI order
-    np.testing.assert_allclose(logit.numpy()[rows], g["rcnn_cls"], **TOL)
-    got, want = rcnn_boxes.numpy()[rows], g["rcnn_boxes"]  # (K, 7) each
-    turn = np.remainder(got[:, 6] - want[:, 6] + math.pi, 2 * math.pi) - math.pi
-    np.testing.assert_allclose(got[:, :6], want[:, :6], rtol=0, atol=1e-3)
-    assert np.abs(turn).max() <= 1e-3
-    want_boxes, want_final = car_boxes(g)
-    assert len(want_boxes) > 0
-    assert_same_boxes(boxes.numpy(), scores.numpy(), want_boxes, want_final)
+    # the proposals; the RCNN of each proposal, ours in the reference's RoI order; the final Car boxes
+    rows = matching(rois.numpy(), g["rois"])
+    assert_two_stage(g, (rois, roi_scores, roi_labels), (logit[rows], rcnn_boxes[rows]), (boxes, scores), TOL)
 
 
 def test_another_network_exits_2_naming_the_mismatch(tmp_path, capsys):
