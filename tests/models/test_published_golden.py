@@ -107,3 +107,17 @@ def assert_matches_golden(net, g: dict) -> None:
 def test_imported_network_is_the_reference(source, model, tmp_path):
     net, g = imported(source, model, tmp_path)
     assert_matches_golden(net, g)
+
+
+def assert_import_refused(tmp_path, capsys, model: str, config: str, cases) -> None:
+    """``import --from openpcdet --model <model>`` of each (name, state dict, expected words) in ``cases``: exit
+    2, a message naming OpenPCDet's ``config`` and the words, and no output file."""
+    from harness.cli import main
+    from tests.harness.test_import_weights import openpcdet_file
+    for name, state, want in cases:
+        openpcdet_file(tmp_path / f"{name}.pth", state)
+        assert main(["import", "--from", "openpcdet", "--model", model, "--checkpoint",
+                     str(tmp_path / f"{name}.pth"), "--out", str(tmp_path / "o.pt")]) == 2
+        err = capsys.readouterr().err
+        assert f"does not hold the network of OpenPCDet tools/cfgs/kitti_models/{config}" in err and want in err, err
+        assert not (tmp_path / "o.pt").exists()

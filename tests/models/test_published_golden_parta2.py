@@ -9,11 +9,9 @@ import collections
 import numpy as np
 import torch
 
-from harness.cli import main
 from models.roi_head import decode_canonical, finalize, propose, roi_support
 from tests.harness import published_layouts as layouts
-from tests.harness.test_import_weights import openpcdet_file
-from tests.models.test_published_golden import assert_two_stage, imported, load
+from tests.models.test_published_golden import assert_import_refused, assert_two_stage, imported, load
 
 TOL = dict(rtol=1e-4, atol=1e-4)
 
@@ -62,10 +60,4 @@ def test_another_network_exits_2_naming_the_mismatch(tmp_path, capsys):
     per_class["point_head.cls_layers.0.bias"] = torch.zeros(3)
     cases = (("second", second, "tensors of ours no reference tensor fills (170): part_head.0.bias"),
              ("per_class", per_class, "point_head.cls_layers.0.weight (3, 16) for seg_head.0.weight (1, 16)"))
-    for name, state, want in cases:
-        openpcdet_file(tmp_path / f"{name}.pth", state)
-        assert main(["import", "--from", "openpcdet", "--model", "parta2", "--checkpoint",
-                     str(tmp_path / f"{name}.pth"), "--out", str(tmp_path / "o.pt")]) == 2
-        err = capsys.readouterr().err
-        assert "does not hold the network of OpenPCDet tools/cfgs/kitti_models/PartA2.yaml" in err and want in err, err
-        assert not (tmp_path / "o.pt").exists()
+    assert_import_refused(tmp_path, capsys, "parta2", "PartA2.yaml", cases)

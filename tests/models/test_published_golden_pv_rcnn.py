@@ -10,11 +10,9 @@ import math
 import numpy as np
 import torch
 
-from harness.cli import main
 from models.pv_rcnn_published import in_range_points
 from models.roi_head import finalize, propose
-from tests.harness.test_import_weights import openpcdet_file
-from tests.models.test_published_golden import assert_two_stage, imported, load
+from tests.models.test_published_golden import assert_import_refused, assert_two_stage, imported, load
 
 TOL = dict(rtol=1e-4, atol=1e-4)
 
@@ -74,10 +72,4 @@ def test_another_network_exits_2_naming_the_mismatch(tmp_path, capsys):
     per_class["point_head.cls_layers.6.bias"] = torch.zeros(3)
     cases = (("parta2", other, "tensors of ours no reference tensor fills"),
              ("per_class", per_class, "point_head.cls_layers.6.weight (3, 256) for vsa.weight.6.weight (1, 256)"))
-    for name, state, want in cases:
-        openpcdet_file(tmp_path / f"{name}.pth", state)
-        assert main(["import", "--from", "openpcdet", "--model", "pv_rcnn", "--checkpoint",
-                     str(tmp_path / f"{name}.pth"), "--out", str(tmp_path / "o.pt")]) == 2
-        err = capsys.readouterr().err
-        assert "does not hold the network of OpenPCDet tools/cfgs/kitti_models/pv_rcnn.yaml" in err and want in err, err
-        assert not (tmp_path / "o.pt").exists()
+    assert_import_refused(tmp_path, capsys, "pv_rcnn", "pv_rcnn.yaml", cases)
