@@ -92,9 +92,10 @@ def val_note(vals: dict) -> str:
     n = lambda v: "?" if v is None or (isinstance(v, float) and np.isnan(v)) else str(v)
     if vals.get("valset"):
         return (f"One val set: \"val AP\" is KITTI moderate AP40 3D on the run's {n(vals['valset'])} held-out frames of "
-                "the training generator (data/val), and the SOTIF view's operating thresholds (F1-optimal at BEV IoU "
-                f"0.5) come from the same frames; the checkpoint's per-epoch series used {n(vals['training'])} frames of "
-                "the training set's own val split. None of them overlaps the SOTIF or sweep test sets.")
+                "the training generator (data/val), and each model's operating threshold (F1-optimal at BEV IoU "
+                "0.5; the SOTIF verdict's score cut) comes from the same frames; the checkpoint's per-epoch series used "
+                f"{n(vals['training'])} frames of the training set's own val split. None of them overlaps the SOTIF or sweep test sets.")
     return (f"Two val sets: \"val AP\" is KITTI moderate AP40 3D on {n(vals['training'])} held-out dry frames of the "
-            f"training generator (training val); the SOTIF view's operating thresholds come from the {n(vals['sotif'])} "
-            "val frames of the SOTIF data set (SOTIF val). Neither overlaps the SOTIF test split.")
+            f"training generator (training val); each model's operating threshold (the SOTIF verdict's score cut) "
+            f"comes from the {n(vals['sotif'])} val frames of the SOTIF data set (SOTIF val). Neither overlaps the SOTIF "
+            "test split.")

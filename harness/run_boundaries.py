@@ -135,7 +135,7 @@ def search_boundaries(stages: Stages, cfg, run_dir: Path, models: dict[str, floa
 
 def boundaries_stage(stages: Stages, cfg, run_dir: Path, summary: dict, runtime: str) -> None:
     """``run``'s hook: the searches of ``cfg.bounds`` (none when None) for the models of ``summary`` at their
-    operating thresholds (the SOTIF view's)."""
+    operating thresholds (F1-optimal on the val frames)."""
     if cfg.bounds is None:
         return
     thresholds = {name: float(next(iter(entry["sotif"].values()))["threshold"]) for name, entry in summary.items()}

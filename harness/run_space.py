@@ -7,7 +7,7 @@ and road water) is predicted into ``predictions_sweep/<model>/`` and evaluated i
 each model of ``results.json``:
 
 - ``sotif_space.<sotif|sweep>``: ``harness.verdict.verdict`` (rule, instances, phantoms, summary, frames)
-  at the model's operating threshold (the SOTIF view's), the system verdict at its onnxruntime latency p90
+  at the model's operating threshold (F1-optimal on the val frames), the system verdict at its onnxruntime latency p90
   (measured by the run's probe on this machine);
 - ``calibration.<0.7|0.5>.<all|precipitation class>``: ``harness.calibration.calibration_view``
   over the SOTIF set's test frames.

@@ -270,7 +270,7 @@ def test_lidar_fog_and_val_notes(tmp_path):
     kitti.write_image_set(tmp_path / "data" / "val_frames.txt", [f"{i:06d}" for i in range(5)])
     vals = notes.val_sets(tmp_path, {"data": {"n_val_frames": 0}})
     assert vals["valset"] == 5 and notes.val_header(vals) == "val set 5 (val AP and operating thresholds)"
-    assert "the run's 5 held-out frames" in notes.val_note(vals) and "operating thresholds" in notes.val_note(vals)
+    assert "the run's 5 held-out frames" in notes.val_note(vals) and "operating threshold" in notes.val_note(vals)
 
 
 def test_report_leads_with_the_rain_story_and_says_what_its_numbers_do_not(rendered):
