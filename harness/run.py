@@ -174,7 +174,7 @@ def _train_export(stages: Stages, cfg: RunConfig, run_dir: Path, recipe: ModelRe
     init = checkpoint_of(run_dir, sibling) if sibling else None
     warm = {"init_from": {"model": sibling, "checkpoint": file_digest(init)}} if init else {}
     tinfo = stages.run(f"train_{tag}", {"model": recipe.model, "profile": recipe.profile, "epochs": cfg.epochs,
-                                         "schedule": asdict(recipe.schedule), "model_config": asdict(recipe.config),
+                                         "schedule": recipe.schedule.key(), "model_config": asdict(recipe.config),
                                          "data": train_hash, "seed": seed, **warm},
                        lambda: {"checkpoint": str(train(recipe, run_dir / "data" / "train", ckpt.parent,
                                                         epochs=cfg.epochs, device=cfg.device, seed=seed,

@@ -345,7 +345,7 @@ def _session(recipe: ModelRecipe, data: Path, out: Path, epochs: int | None, see
     use_gts = uses_gt_sampling(net, aug)
     database = load_or_build(data, data / "gt_database", aug.gt_sampling) if use_gts else None
     ident = {"model": recipe.model, "profile": recipe.profile, "data_hash": dataset_hash(data),
-             "config_hash": config_hash({"model": asdict(cfg), "train": asdict(tcfg), "epochs": epochs,
+             "config_hash": config_hash({"model": asdict(cfg), "train": tcfg.key(), "epochs": epochs,
                                          "seed": seed, "augment": asdict(aug), "gt_sampling": use_gts, **warm})}
     optimizer = torch.optim.AdamW(net.parameters(), lr=tcfg.lr, weight_decay=tcfg.weight_decay)
     steps = epochs * math.ceil(len(ds) / tcfg.batch_size)

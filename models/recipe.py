@@ -12,7 +12,7 @@
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 
 PROFILES = ("tiny", "compact", "kitti")
 
@@ -27,6 +27,14 @@ class Schedule:
     # exponential moving average of the weights (harness.train): the decay per step, 0 = off; a training with it
     # evaluates, checkpoints and exports the averaged copy
     ema: float = 0.0
+
+    def key(self) -> dict:
+        """What identifies a training by its schedule: the fields, less those added since that are off (``ema`` 0),
+        so that the trainings and runs made before them keep their keys."""
+        out = asdict(self)
+        if not out["ema"]:
+            del out["ema"]
+        return out
 
 
 # compact, the default run's profile: each model's RECIPE sets its epochs so that it trains in 14-25 minutes

@@ -80,3 +80,13 @@ def test_recipe_errors_are_clear():
         zoo.Recipe(epochs={"fast": 3})
     with pytest.raises(ValueError, match="warm_lr without warm_from"):
         zoo.Recipe(warm_lr=1e-3)
+
+
+def test_a_schedule_key_leaves_out_the_levers_that_are_off():
+    """A training keyed before ``ema`` existed keeps its key while the average is off; with it on, the key differs."""
+    from dataclasses import asdict, replace
+
+    from models.recipe import Schedule
+    s = Schedule(epochs=4, batch_size=2, lr=3e-3)
+    assert s.key() == {"epochs": 4, "batch_size": 2, "lr": 3e-3, "weight_decay": 0.01, "grad_clip": 10.0}
+    assert replace(s, ema=0.999).key() == asdict(replace(s, ema=0.999))
