@@ -34,8 +34,8 @@ import torch
 from torch import nn
 
 from benchmarks.golden_published import frame as published_frame
-from benchmarks.golden_published import (import_openpcdet, iou, openpcdet_config, polygon, reference_main, repeatable,
-                                         sampled_entries, seeded, voxelize)
+from benchmarks.golden_published import (TWO_STAGE, import_openpcdet, iou, openpcdet_config, polygon, reference_main,
+                                         repeatable, sampled_entries, seeded, two_stage_counts, voxelize)
 
 SEED, CLS_BIAS = 500, -2.0
 GROUND = 8000
@@ -214,11 +214,8 @@ def golden(root: Path, out: Path, seed: int = SEED) -> Path:
         sampled[f"{key}_xyz"] = res["xyz"][sampled[f"{key}_index"][:, 0]]
     path = out / "openpcdet_parta2.npz"
     np.savez_compressed(path, **weights, points=points, num_voxels=res["num_voxels"], **sampled,
-                        **{k: res[k] for k in ("rois", "roi_scores", "roi_labels", "rcnn_cls", "rcnn_boxes", "boxes",
-                                               "scores", "labels")}, classes=np.array(classes))
-    car = int((res["labels"] == 0).sum())
-    print(f"{path}: {res['num_voxels']} voxels, {len(res['rois'])} proposals "
-          f"({int((res['roi_labels'] == 0).sum())} Car), {len(res['boxes'])} boxes ({car} Car)")
+                        **{k: res[k] for k in TWO_STAGE}, classes=np.array(classes))
+    print(f"{path}: {res['num_voxels']} voxels, {two_stage_counts(res)}")
     return path
 
 

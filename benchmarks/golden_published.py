@@ -228,6 +228,16 @@ def sampled_entries(res: dict, keys, seed: int) -> dict:
     return out
 
 
+# what a two-stage reference's golden file keeps of its result: proposals, the RCNN on them, the final boxes
+TWO_STAGE = ("rois", "roi_scores", "roi_labels", "rcnn_cls", "rcnn_boxes", "boxes", "scores", "labels")
+
+
+def two_stage_counts(res: dict) -> str:
+    """The proposals and final boxes of a two-stage reference's result, with their Car ones (label 0)."""
+    return (f"{len(res['rois'])} proposals ({int((res['roi_labels'] == 0).sum())} Car), {len(res['boxes'])} boxes "
+            f"({int((res['labels'] == 0).sum())} Car)")
+
+
 def reference_main(argv, description: str, importer, make, seed: int) -> int:
     """The command line of a one-network generator: ``--openpcdet`` checkout, ``--out`` folder, ``--seed``;
     ``importer(root)`` makes OpenPCDet's modules importable, ``make(root, out, seed)`` writes the file."""

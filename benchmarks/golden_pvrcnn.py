@@ -39,8 +39,8 @@ import torch
 from torch import nn
 
 from benchmarks.golden_parta2 import TieError, capped_tie, frame, order_free
-from benchmarks.golden_published import (import_openpcdet, openpcdet_config, reference_main, repeatable, sampled_entries,
-                                         seeded, voxelize)
+from benchmarks.golden_published import (TWO_STAGE, import_openpcdet, openpcdet_config, reference_main, repeatable,
+                                         sampled_entries, seeded, two_stage_counts, voxelize)
 
 SEED, CLS_BIAS = 621, -2.0
 BALL_MARGIN = 1e-5  # metres: a keypoint this close to a RoI grid ball's surface makes the frame fragile
@@ -275,12 +275,9 @@ def golden(root: Path, out: Path, seed: int = SEED) -> Path:
     path = out / "openpcdet_pv_rcnn.npz"
     np.savez_compressed(path, **weights, points=points, **sampled,
                         **{k: res[k] for k in ("num_voxels", "keypoint_index", "fps_ties", "ball_margin", "weights",
-                                               "rois", "roi_scores", "roi_labels", "rcnn_cls", "rcnn_boxes", "boxes",
-                                               "scores", "labels")}, classes=np.array(classes))
-    car = int((res["labels"] == 0).sum())
+                                               *TWO_STAGE)}, classes=np.array(classes))
     print(f"{path}: {res['num_voxels']} voxels, {len(res['keypoint_index'])} keypoints ({res['fps_ties']} FPS ties), "
-          f"{len(res['rois'])} proposals ({int((res['roi_labels'] == 0).sum())} Car), {len(res['boxes'])} boxes "
-          f"({car} Car); RoI grid ball margin {res['ball_margin']:.2e} m")
+          f"{two_stage_counts(res)}; RoI grid ball margin {res['ball_margin']:.2e} m")
     return path
 
 
