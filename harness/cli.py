@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import argparse
 import errno
+import math
 import os
 import sys
 import traceback
@@ -122,12 +123,57 @@ def cmd_simulate(a) -> int:
     from simulator.weather import WEATHER_PRESETS
     weathers = _nonempty_csv(a.weathers, "--weathers")
     weathers = weathers and resolve_names(weathers, list(WEATHER_PRESETS), "--weathers", "weather preset")
+    probes = _probes(a)
     out = generate(Path(a.out), preset=a.preset, frames=a.frames, weathers=weathers,
                    seed=a.seed, workers=a.workers, lidar_model=a.lidar_model, progress=not a.quiet, force=a.force,
-                   instances=a.instances)
+                   instances=1 if a.instances is None else a.instances, probes=probes)
     from simulator.dataset import read_content_digest
     print(f"data set written to {out} (content SHA-256 {read_content_digest(out)}, in meta/dataset.json)")
     return 0
+
+
+PROBE_OPTIONS = ("axis", "values", "scenarios", "noise_seeds")  # simulate's options of the bounds preset
+# simulator.bounds's AXES and reference scenarios, spelled here so that building the parser imports no simulator
+BOUNDS_AXES = ("rain", "fog", "water", "reflectance")
+BOUNDS_SCENARIOS = "90-60 or 120-60 km/h, sedan or suv, silver or black: e.g. 90-60_sedan_silver"
+
+
+def _probes(a):
+    """The probes of ``simulate --preset bounds`` (every scenario x value x noise seed), None for other presets;
+    ValueError naming the option that is missing, malformed or given with another preset."""
+    from simulator.bounds import REFERENCES, Probe, check_probes
+    given = [f"--{n.replace('_', '-')}" for n in PROBE_OPTIONS if getattr(a, n) is not None]
+    if a.preset != "bounds":
+        if given:
+            raise ValueError(f"{given[0]} goes with --preset bounds only")
+        return None
+    for name in ("axis", "values"):
+        if getattr(a, name) is None:
+            raise ValueError(f"--preset bounds needs --{name}")
+    from harness.names import resolve_names
+    values = [_float_item(v, "--values") for v in _nonempty_csv(a.values, "--values")]
+    scenarios = list(REFERENCES) if a.scenarios in (None, "all") else resolve_names(
+        _nonempty_csv(a.scenarios, "--scenarios"), list(REFERENCES), "--scenarios", "reference scenario")
+    seeds = [0] if a.noise_seeds is None else [_int_item(v, "--noise-seeds")
+                                                for v in _nonempty_csv(a.noise_seeds, "--noise-seeds")]
+    return check_probes(Probe(s, a.axis, v, k) for s in scenarios for v in values for k in seeds)
+
+
+def _float_item(text: str, option: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise ValueError(f"{option}: {text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise ValueError(f"{option}: {text!r} is not a finite number")
+    return value
+
+
+def _int_item(text: str, option: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise ValueError(f"{option}: {text!r} is not an integer") from None
 
 
 def cmd_train(a) -> int:
@@ -291,10 +337,11 @@ def _version() -> str:
 def _add_simulate(sub, quiet) -> None:
     s = sub.add_parser("simulate", parents=[quiet], **command_text("simulate"),
                        help="simulate the SOTIF test set or training scenes as a KITTI data set")
-    s.add_argument("--preset", choices=["sotif", "train", "sweep"], required=True,
+    s.add_argument("--preset", choices=["sotif", "train", "sweep", "bounds"], required=True,
                    help="sotif: the cut-out scenario under every weather; train: randomised training scenes; "
-                        "sweep: scenario instances under continuous rain, fog and road water")
-    s.add_argument("--instances", type=int, default=1,
+                        "sweep: scenario instances under continuous rain, fog and road water; bounds: a controlled "
+                        "sweep, reference scenarios held fixed and one axis varied (--axis, --values)")
+    s.add_argument("--instances", type=int,
                    help="scenario instances per weather (sweep: in all) from a seeded space-filling design; 1 with "
                         "sotif is the study's protocol, byte for byte (default 1)")
     s.add_argument("--out", required=True, type=_folder,
@@ -310,6 +357,15 @@ def _add_simulate(sub, quiet) -> None:
     s.add_argument("--workers", type=int, default=1, help="processes simulating frames at once (default 1)")
     s.add_argument("--lidar-model", choices=["physics", "carla"], default="physics",
                    help="physics: weather changes the LiDAR; carla: CARLA's weather-blind LiDAR (default physics)")
+    s.add_argument("--axis", choices=BOUNDS_AXES,
+                   help="bounds: the axis varied (rain mm/h, fog visibility m, road water share, the slow car's "
+                        "reflectance at 905 nm; ranges in docs/simulator.md)")
+    s.add_argument("--values", help="bounds: comma-separated values of the axis, one instance each per scenario "
+                                    "and noise seed")
+    s.add_argument("--scenarios", help="bounds: comma-separated reference scenarios KINEMATICS_BODY_PAINT (" +
+                                       BOUNDS_SCENARIOS + "), or all (default)")
+    s.add_argument("--noise-seeds", help="bounds: comma-separated noise seeds, each redrawing the sensor noise, "
+                                         "the rain and fog returns and the spray (default 0)")
     s.set_defaults(func=cmd_simulate)
 
 

@@ -13,10 +13,14 @@ import textwrap
 COMMANDS = {  # name: (what it does, examples)
     "simulate": ("Simulate the SOTIF cut-out scenario (--preset sotif: the test set, under every weather preset) "
                  "or randomised training scenes (--preset train) with a ray-cast LiDAR and camera, and write a KITTI "
-                 "data set with meta/frames.csv. A stopped simulate resumes. Weather presets (CARLA's names, "
-                 "any case): {weathers}.",
+                 "data set with meta/frames.csv. --preset sweep draws scenario instances under continuous weather; "
+                 "--preset bounds holds reference scenarios fixed and varies one axis (a controlled sweep, one "
+                 "instance per scenario, value and noise seed), the set `verdict` places a detector's boundary on. "
+                 "A stopped simulate resumes. Weather presets (CARLA's names, any case): {weathers}.",
                  ["sotif-bench simulate --preset sotif --out data/sotif --frames 42 --weathers ClearNoon,HardRainNoon",
-                  "sotif-bench simulate --preset train --out data/train --workers 2"]),
+                  "sotif-bench simulate --preset train --out data/train --workers 2",
+                  "sotif-bench simulate --preset bounds --axis rain --values 0,25,50,100 --scenarios "
+                  "90-60_sedan_silver,90-60_sedan_black --noise-seeds 0,1 --out data/rain_bounds"]),
     "train": ("Train one detector on the train split of a KITTI data set (scored on val after every epoch) and "
               "write OUT/checkpoint.pt; a stopped training resumes. Models: {models}.",
               ["sotif-bench train --model pointpillars --data data/train --out runs/pointpillars",
@@ -26,8 +30,8 @@ COMMANDS = {  # name: (what it does, examples)
                "(inputs points [N, 4]; outputs boxes, scores; see the README). Models: {models}.",
                ["sotif-bench export --model pointpillars --checkpoint runs/pointpillars/checkpoint.pt "
                 "--out pointpillars.onnx"]),
-    "import": ("Import a published checkpoint (OpenPCDet's PointPillars or SECOND, MMDetection3D's DV-SECOND, "
-               "KITTI 3-class) as our kitti-profile checkpoint, read without running code from it; every tensor is "
+    "import": ("Import a published checkpoint (OpenPCDet's PointPillars, SECOND, Part-A2 or PV-RCNN, "
+               "MMDetection3D's DV-SECOND; KITTI 3-class) as our kitti-profile checkpoint, read without running code from it; every tensor is "
                "mapped or the file is refused, naming what is missing, extra or misshapen. Then export it as usual.",
                ["sotif-bench import --from openpcdet --model second --checkpoint second_7862.pth --out second.pt",
                 "sotif-bench import --from mmdet3d --model dv_second --checkpoint dv_second_kitti.pth --out dv.pt"]),

@@ -227,3 +227,45 @@ def test_a_first_compile_prints_one_notice_and_a_cached_one_none(tmp_path):
             for _ in range(2)]
     assert [r.returncode for r in runs] == [0, 0], runs[0].stderr
     assert runs[0].stderr.count(NOTICE) == 1 and NOTICE not in runs[1].stderr
+
+
+def test_simulate_bounds_makes_every_scenario_value_and_seed_probe(tmp_path, monkeypatch, capsys):
+    import simulator
+    from simulator.bounds import AXES, REFERENCES, Probe
+    assert cli.BOUNDS_AXES == AXES  # spelled in the parser so that it imports no simulator
+    assert all(name.split("_", 1)[0] in cli.BOUNDS_SCENARIOS for name in REFERENCES)
+    calls = []
+    monkeypatch.setattr(simulator, "generate", lambda out, **k: calls.append(k) or out)
+    import simulator.dataset
+    monkeypatch.setattr(simulator.dataset, "read_content_digest", lambda out: "x")
+    base = ["--quiet", "simulate", "--preset", "bounds", "--out", str(tmp_path / "b")]
+    assert main(base + ["--axis", "rain", "--values", "0,50", "--scenarios", "90-60_SEDAN_black,120-60_suv_silver",
+                        "--noise-seeds", "0,2"]) == 0
+    assert calls[0]["preset"] == "bounds" and calls[0]["instances"] == 1
+    assert calls[0]["probes"] == tuple(Probe(s, "rain", v, k) for s in ("90-60_sedan_black", "120-60_suv_silver")
+                                       for v in (0.0, 50.0) for k in (0, 2))
+    assert main(base + ["--axis", "fog", "--values", "500"]) == 0  # every reference scenario, noise seed 0
+    assert calls[1]["probes"] == tuple(Probe(s, "fog", 500.0, 0) for s in REFERENCES)
+    assert main(["--quiet", "simulate", "--preset", "sweep", "--instances", "4", "--out", str(tmp_path / "s")]) == 0
+    assert calls[2]["probes"] is None and calls[2]["instances"] == 4
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--preset", "bounds", "--axis", "rain"], "--preset bounds needs --values"),
+    (["--preset", "bounds", "--values", "3"], "--preset bounds needs --axis"),
+    (["--preset", "bounds", "--axis", "rain", "--values", "3,x"], "--values: 'x' is not a number"),
+    (["--preset", "bounds", "--axis", "rain", "--values", "nan"], "--values: 'nan' is not a finite number"),
+    (["--preset", "bounds", "--axis", "rain", "--values", "150"], "axis rain: value 150.0 outside 0.0-100.0 mm/h"),
+    (["--preset", "bounds", "--axis", "water", "--values", "1", "--noise-seeds", "1.5"],
+     "--noise-seeds: '1.5' is not an integer"),
+    (["--preset", "bounds", "--axis", "water", "--values", "1", "--noise-seeds", "-1"], "noise seed must be an integer >= 0"),
+    (["--preset", "bounds", "--axis", "water", "--values", "1", "--scenarios", "90-60_sedan_gold"],
+     "unknown reference scenario '90-60_sedan_gold'"),
+    (["--preset", "bounds", "--axis", "water", "--values", "1", "--instances", "2"],
+     "a bounds set takes neither frames, weathers nor instances"),
+    (["--preset", "sweep", "--values", "1"], "--values goes with --preset bounds only"),
+    (["--preset", "sotif", "--axis", "fog"], "--axis goes with --preset bounds only"),
+])
+def test_simulate_bounds_refuses_bad_probes_by_name(extra, message, tmp_path, capsys):
+    assert main(["--quiet", "simulate", "--out", str(tmp_path / "b"), *extra]) == 2
+    assert message in capsys.readouterr().err and list(tmp_path.iterdir()) == []
