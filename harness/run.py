@@ -10,7 +10,9 @@ Training draws: with ``seeds`` K > 1 every model is trained K times, with the tr
 ``seed`` .. ``seed + K - 1``. Draw 0 keeps the single draw's files (``models/<name>/``,
 ``models/<name>.onnx``, ``predictions/<name>/``, ``results/<name>.json``), so a run with
 ``--seeds 2`` resumes a finished run of one draw; draw d > 0 writes the same files under the
-name ``<name>.seed<d>``. ``results.json`` then lists every draw under ``draws``.
+name ``<name>.seed<d>``. ``results.json`` then lists every draw under ``draws``. A later draw is
+predicted on the SOTIF test and val sets (its headline AP and val AP in tables/draws.csv and the paired
+table), not on the sweep set: the scenario-space verdict and the boundaries judge draw 0.
 """
 from __future__ import annotations
 
@@ -264,7 +266,8 @@ def _model_job(cfg: RunConfig, run_dir: Path, tag: str, recipe: ModelRecipe | No
         tinfo = import_export(stages, cfg, run_dir, tag)
     else:
         tinfo = _train_export(stages, cfg, run_dir, recipe, tag, train_hash, draw)
-    ort = _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads, sweep_hash)
+    # the scenario-space verdict and the boundaries judge draw 0; later draws add the SOTIF headline and val
+    ort = _predict_eval(stages, cfg, run_dir, tag, sotif_hash, runtime, threads, sweep_hash if draw == 0 else None)
     valset.predict_evaluate(stages, cfg, run_dir, tag, runtime, threads)
     return tinfo, ort
 

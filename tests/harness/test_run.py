@@ -463,3 +463,15 @@ def test_a_changed_graph_code_exports_again_and_trains_nothing(tmp_path, monkeyp
         recipe = hr.model_recipes(TINY, ["pointpillars"])["pointpillars"]
         hr._train_export(stages, TINY, tmp_path, recipe, "pointpillars", "data")
     assert calls == ["train", "export", "export"]
+
+
+def test_a_later_draw_is_not_predicted_on_the_sweep_set(tmp_path, monkeypatch):
+    import harness.run as hr
+    seen = []
+    monkeypatch.setattr(hr, "_train_export", lambda *a, **k: {})
+    monkeypatch.setattr(hr, "_predict_eval", lambda *a: seen.append(a[-1]) or {})
+    monkeypatch.setattr(hr.valset, "predict_evaluate", lambda *a, **k: None)
+    recipe = hr.model_recipes(TINY, ["pointpillars"])["pointpillars"]
+    for tag, draw in (("pointpillars", 0), ("pointpillars.seed1", 1)):
+        hr._model_job(TINY, tmp_path, tag, recipe, "h", "h", "onnxruntime", False, None, False, draw, "sweep")
+    assert seen == ["sweep", None]
