@@ -196,14 +196,14 @@ def sample(t: torch.Tensor, rng: np.random.Generator) -> tuple[np.ndarray, np.nd
     return pick.astype(np.int64), t.numpy()[tuple(pick.T)]
 
 
-def seeded(net: nn.Module, seed: int, cls_bias: float, head_scale: float = 1.0) -> dict:
-    """Fill ``net``'s checkpoint tensors by the seeded rule; returns what a golden file records of them
+def seeded(net: nn.Module, seed: int, cls_bias: float, head_scale: float = 1.0, rule: str = RULE) -> dict:
+    """Fill ``net``'s checkpoint tensors by the seeded ``rule``; returns what a golden file records of them
     (the rule, its arguments, the tensor names and shapes; no weights)."""
     state = net.state_dict()
     names, shapes = list(state), [tuple(t.shape) for t in state.values()]
-    values = fill(names, shapes, seed, cls_bias, head_scale)
+    values = fill(names, shapes, seed, cls_bias, head_scale, rule)
     net.load_state_dict({n: torch.from_numpy(v) for n, v in values.items()})
-    return dict(rule=RULE, seed=seed, cls_bias=cls_bias, head_scale=head_scale, names=np.array(names),
+    return dict(rule=rule, seed=seed, cls_bias=cls_bias, head_scale=head_scale, names=np.array(names),
                 shape_dims=np.array([len(s) for s in shapes]), shape_values=np.array([d for s in shapes for d in s]))
 
 

@@ -22,6 +22,7 @@ that it may enter, around a grid point of a RoI whose box is kept (our proposals
 reference's by a few float32 ulps, and a keypoint that leaves a ball changes that RoI's box by far more
 than 1e-3). Ties of the FPS (two points at
 the same largest distance) are counted and the sampled indices recorded, so the comparison is exact.
+The checkpoint tensors are filled by golden_parta2's rule (golden-weights-2).
 ``tests/golden/openpcdet_pv_rcnn.npz`` holds the rule's seed, the tensor names and shapes (no weights), the
 frame, the keypoints' indices into the in-range points, sampled intermediates (the bird's-eye map, the RPN
 class logits, the keypoint features before and after the fusion, every keypoint's weight), the 100
@@ -38,7 +39,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from benchmarks.golden_parta2 import TieError, capped_tie, frame, order_free
+from benchmarks.golden_parta2 import RULE, TieError, capped_tie, frame, order_free
 from benchmarks.golden_published import (TWO_STAGE, import_openpcdet, openpcdet_config, reference_main, repeatable,
                                          sampled_entries, seeded, two_stage_counts, voxelize)
 
@@ -268,7 +269,7 @@ def run(net, proc, post, points: np.ndarray, native_order: bool = False) -> dict
 
 def golden(root: Path, out: Path, seed: int = SEED) -> Path:
     net, proc, post, classes = build(root)
-    weights = seeded(net, seed, CLS_BIAS)
+    weights = seeded(net, seed, CLS_BIAS, rule=RULE)
     points = frame(seed)
     res = repeatable(run, net, proc, post, points)
     sampled = sampled_entries(res, ("bev", "cls", "before", "fused"), seed + 1)

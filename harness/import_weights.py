@@ -17,14 +17,13 @@ those classes' anchor sets and channels, in the checkpoint's config.
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import io
 import re
 from pathlib import Path
 
 import torch
 
-from harness.core.files import atomic_write_bytes
+from harness.core.files import atomic_write_bytes, sha256_file
 from harness.published_maps import CLASS_CONFIGS, CONFIG_FILES, FC, IGNORED, SPARSE, TABLES
 from models import zoo
 
@@ -178,7 +177,7 @@ def import_checkpoint(path, source: str, model: str, out) -> dict:
     net, config = published_network(path, source, model, info.get("classes"))
     weights = convert(path, source, model, state, module_meta, net, config)
     provenance = {"source": source, "config": config, "file": path.name,
-                  "sha256": hashlib.sha256(path.read_bytes()).hexdigest(), "classes": list(net.cfg.head.classes),
+                  "sha256": sha256_file(path), "classes": list(net.cfg.head.classes),
                   **{k: v for k, v in info.items() if k not in ("classes", "epoch") and v}}
     ckpt = {"model": model, "profile": "kitti", "config": dataclasses.asdict(net.cfg), "state_dict": weights,
             "epoch": info.get("epoch") if isinstance(info.get("epoch"), int) else "", "published": provenance}

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from benchmarks.golden_weights import RULE, fill
+from benchmarks.golden_weights import RULES, fill
 from harness.import_weights import import_checkpoint
 from models import zoo
 
@@ -22,7 +22,7 @@ CASES = [("openpcdet", "pointpillars"), ("openpcdet", "second")]
 def load(source: str, model: str, config: str = "") -> dict:
     """The golden data of a published network (``config``: a named other config of it, e.g. ``car``)."""
     g = dict(np.load(GOLDEN / f"{source}_{model}{'_' + config if config else ''}.npz"))
-    assert str(g["rule"]) == RULE
+    assert str(g["rule"]) in RULES
     dims, values = g["shape_dims"], g["shape_values"]
     ends = np.cumsum(dims)
     g["shapes"] = [tuple(int(v) for v in values[e - d:e]) for d, e in zip(dims, ends)]
@@ -31,9 +31,9 @@ def load(source: str, model: str, config: str = "") -> dict:
 
 def reference_file(g: dict, path: Path) -> None:
     """The golden weights in OpenPCDet's checkpoint format (a legacy non-zip save)."""
-    state = collections.OrderedDict((n, torch.from_numpy(v)) for n, v in
-                                    fill([str(n) for n in g["names"]], g["shapes"], int(g["seed"]),
-                                         float(g["cls_bias"]), float(g.get("head_scale", 1.0))).items())
+    values = fill([str(n) for n in g["names"]], g["shapes"], int(g["seed"]), float(g["cls_bias"]),
+                  float(g.get("head_scale", 1.0)), str(g["rule"]))
+    state = collections.OrderedDict((n, torch.from_numpy(v)) for n, v in values.items())
     torch.save({"epoch": 0, "it": 0, "model_state": state, "optimizer_state": {}, "version": "pcdet+0.6.0"}, path,
                _use_new_zipfile_serialization=False)
 

@@ -23,7 +23,7 @@ def reference_file(g: dict, path: Path) -> None:
     """The golden weights as an MMDetection3D 1.4 checkpoint (mmengine's save: meta, state_dict)."""
     state = collections.OrderedDict((n, torch.from_numpy(v)) for n, v in
                                     fill([str(n) for n in g["names"]], g["shapes"], int(g["seed"]),
-                                         float(g["cls_bias"])).items())
+                                         float(g["cls_bias"]), rule=str(g["rule"])).items())
     state._metadata = collections.OrderedDict(
         (str(k), {} if v < 0 else {"version": int(v)}) for k, v in zip(g["meta_keys"], g["meta_versions"]))
     meta = {"mmdet3d_version": "1.4.0", "mmengine_version": "0.10.7", "epoch": 80,
