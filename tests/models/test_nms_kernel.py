@@ -102,3 +102,15 @@ def test_tiny_limits_and_graphs_take_the_torch_form(monkeypatch):
     monkeypatch.setattr(nms, "tracing", lambda: True)
     nms_in_order(boxes, 0.5)
     assert calls == []
+
+
+def test_degenerate_boxes_hand_the_call_to_the_torch_form(monkeypatch):
+    """Boxes of zero width leave every pair undecided (no rounding bound): past ``_MAX_UNDECIDED`` of
+    them the torch form takes the call."""
+    calls = []
+    torch_form = nms._nms_torch
+    monkeypatch.setattr(nms, "_nms_torch", lambda *a: calls.append(a) or torch_form(*a))
+    boxes = _box_set(np.random.default_rng(8), 100, 1.0, False, False, False)
+    boxes[:, 4] = 0.0
+    np.testing.assert_array_equal(nms_in_order(boxes, 0.5).numpy(), torch_form(boxes, 0.5, None).numpy())
+    assert len(calls) == 1
