@@ -147,7 +147,7 @@ def openpcdet_select(boxes: Tensor, scores: Tensor, cfg: PublishedHeadConfig) ->
     boxes, best, label = boxes[order], best[order], label[order]
     good = torch.nonzero(best >= cfg.score_thresh)[:, 0]
     boxes, best, label = boxes[good], best[good], label[good]
-    keep = nms_in_order(boxes, cfg.nms_iou)[:cfg.max_out]
+    keep = nms_in_order(boxes, cfg.nms_iou, cfg.max_out)
     return boxes[keep], best[keep], label[keep]
 
 

@@ -7,7 +7,9 @@
   score quantised to 2^-16 above the candidate's index rank. Scores closer than a level rank by
   index. Every key fits int32: OpenVINO's CPU plugin computes int64 in int32.
 - ``nms_in_order``: greedy rotated NMS of boxes given best first, as a pair pre-filter
-  (``suppression_candidates``), the rotated IoU of the candidate pairs and a fixed-point loop.
+  (``suppression_candidates``), the rotated IoU of the candidate pairs and a fixed-point loop. Eager
+  on the CPU it runs the numba kernel of ``models.nms_kernel`` instead (the same kept indices; the
+  pairs whose IoU lies within float rounding of the threshold are decided by the torch IoU).
 - ``select_ranked``: the two together, with a score threshold and a cap, for the final boxes of
   the one-stage heads and the proposals and final boxes of the two-stage models
   (``ranked_selection``: the indices it keeps).
@@ -23,11 +25,14 @@ enough: a few percent of the K^2 pairs of detections.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch._higher_order_ops.while_loop import while_loop
 
+from models.base import tracing
 from models.iou import iou_bev_pairs
+from models.nms_kernel import MIN_THRESH, greedy_nms_kernel
 
 
 def _cond(keep: Tensor, changed: Tensor) -> Tensor:
@@ -85,16 +90,64 @@ def suppression_candidates(boxes: Tensor, iou_thresh: float) -> Tensor:
     return torch.triu(bound > need, diagonal=1)
 
 
-def nms_in_order(boxes: Tensor, iou_thresh: float) -> Tensor:
-    """(M,) int64 indices of boxes (K, 7), given best first, kept by greedy rotated BEV NMS.
+def nms_in_order(boxes: Tensor, iou_thresh: float, max_keep: int | None = None) -> Tensor:
+    """(M,) int64 indices of boxes (K, 7), given best first, kept by greedy rotated BEV NMS: the first
+    ``max_keep`` of them if given.
 
-    The rotated IoU is computed only for the pairs of ``suppression_candidates``.
+    Box j suppresses box i > j where the pair is a ``suppression_candidates`` one and its rotated IoU
+    (``iou_bev_pairs``, float32) exceeds the limit. Eager float32 CPU boxes take the numba kernel
+    (:func:`_nms_kernel`), which keeps the same boxes; the graph takes the torch form.
     """
+    if _kernel_ready(boxes, iou_thresh):
+        return _nms_kernel(boxes, iou_thresh, max_keep)
+    return _nms_torch(boxes, iou_thresh, max_keep)
+
+
+def _nms_torch(boxes: Tensor, iou_thresh: float, max_keep: int | None) -> Tensor:
+    """:func:`nms_in_order` in torch ops: the graph's form."""
     k = boxes.shape[0]
     j, i = torch.nonzero(suppression_candidates(boxes, iou_thresh), as_tuple=True)  # (P,), (P,)
     over = torch.nonzero(iou_bev_pairs(boxes[j], boxes[i]) > iou_thresh)[:, 0]  # (S,) suppressing pairs
     keep = suppress_fixed_point(j[over], i[over], k)  # (K,)
-    return torch.nonzero(keep)[:, 0]
+    kept = torch.nonzero(keep)[:, 0]
+    return kept if max_keep is None else kept[:max_keep]
+
+
+def _kernel_ready(boxes: Tensor, iou_thresh: float) -> bool:
+    """Eager float32 CPU boxes and a limit the kernel's bound test serves (``MIN_THRESH``)."""
+    return (not tracing() and boxes.device.type == "cpu" and boxes.dtype == torch.float32
+            and iou_thresh >= MIN_THRESH)
+
+
+def _suppresses(boxes: Tensor, j: int, i: int, iou_thresh: float) -> bool:
+    """Box j suppresses box i in the torch form: a candidate pair whose float32 IoU exceeds the limit
+    (both element-wise in the pair, so a pair alone gets the bits it gets among all of them)."""
+    pair = boxes[[j, i]]  # (2, 7)
+    return bool(suppression_candidates(pair, iou_thresh)[0, 1]) and bool(
+        iou_bev_pairs(pair[:1], pair[1:])[0] > iou_thresh)
+
+
+_MAX_UNDECIDED = 64  # pairs the torch IoU decides for the kernel before the torch form takes the call
+
+
+def _nms_kernel(boxes: Tensor, iou_thresh: float, max_keep: int | None) -> Tensor:
+    """:func:`nms_in_order` by ``models.nms_kernel.greedy_nms_kernel``. Each pair it leaves undecided
+    (float64 IoU within float rounding of the limit: rare) is decided here by the torch IoU, and the
+    kernel resumes after it; past ``_MAX_UNDECIDED`` such pairs (degenerate boxes) the torch form runs."""
+    k = boxes.shape[0]
+    cap = k if max_keep is None else max(0, min(k, max_keep))
+    b = boxes.detach()
+    arr = b.numpy().astype(np.float64)  # (K, 7)
+    suppressed, kept = np.zeros(k, np.bool_), np.empty(cap, np.int64)
+    count, j, i = greedy_nms_kernel(arr, float(iou_thresh), cap, suppressed, kept, 0, 0, -1)
+    undecided = 0
+    while j >= 0:
+        if undecided == _MAX_UNDECIDED:
+            return _nms_torch(b, iou_thresh, max_keep)
+        suppressed[i] = _suppresses(b, j, i, iou_thresh)
+        undecided += 1
+        count, j, i = greedy_nms_kernel(arr, float(iou_thresh), cap, suppressed, kept, count, j, i + 1)
+    return torch.from_numpy(kept[:count])
 
 
 INT32_MAX = 2 ** 31 - 1
@@ -146,4 +199,4 @@ def ranked_selection(boxes: Tensor, scores: Tensor, score_thresh: float, nms_pre
     """(M,) int64 indices into boxes (A, 7) / scores (A,) that :func:`select_ranked` keeps, best first."""
     order = ranked_topk(scores, nms_pre)  # (K,)
     order = order[scores[order] > score_thresh]
-    return order[nms_in_order(boxes[order], nms_iou)[:max_out]]
+    return order[nms_in_order(boxes[order], nms_iou, max_out)]

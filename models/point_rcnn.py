@@ -335,7 +335,7 @@ class PointRCNN(Detector):
         R = cfg.rois always: the K <= R proposals that survive NMS come first, then zero rows.
         """
         scores, top, boxes = self.decode_top(pts, seg, box)
-        keep = nms_in_order(boxes, self.cfg.proposal_nms_iou)  # (K,)
+        keep = nms_in_order(boxes, self.cfg.proposal_nms_iou, self.cfg.rois)  # (K,) K <= R
         slot = torch.cat([keep, keep.new_zeros(self.cfg.rois)])[: self.cfg.rois]  # (R,)
         valid = torch.arange(self.cfg.rois, device=seg.device) < keep.shape[0]  # (R,)
         rois = boxes[slot] * valid[:, None].to(boxes.dtype)

@@ -232,6 +232,34 @@ def test_forward_shapes_and_loss_falls():
     assert rois.shape == (k, 7) and roi_scores.shape == (k,) and rcnn_boxes.shape == (k, 7) and 0 < k <= CFG.rois
 
 
+def test_training_takes_the_rois_of_the_torch_nms(monkeypatch):
+    """In training the proposal NMS runs the numba kernel: the same RoIs, scores and losses as with the
+    torch (graph) form, on a crowd of overlapping proposals."""
+    import models.nms as nms
+    torch.manual_seed(0)
+    model = PointRCNN(dataclasses.replace(CFG, pre_nms=256, rois=256)).train()
+    with torch.no_grad():  # spread the untrained foreground scores; boxes of like size and heading, which overlap
+        model.seg_head[-1].weight.mul_(30.0)
+        model.box_head[-1].weight.mul_(0.05)
+    scene = tiny_scene(np.random.default_rng(5), n_cars=3)
+    seen, propose, kernel = [], PointRCNN.propose, nms._nms_kernel
+    monkeypatch.setattr(PointRCNN, "propose", lambda self, *a: seen.append(propose(self, *a)) or seen[-1])
+    monkeypatch.setattr(nms, "_nms_kernel", lambda *a: seen.append("kernel") or kernel(*a))
+
+    def step():
+        model.sampling_rng = np.random.default_rng(0)
+        return model.loss([scene])
+
+    fast = step()
+    monkeypatch.setattr(nms, "_kernel_ready", lambda *a: False)
+    slow = step()
+    assert seen[0] == "kernel" and "kernel" not in seen[2:]
+    (rois, scores, valid), (ref_rois, ref_scores, ref_valid) = seen[1], seen[2]
+    assert 10 < int(valid.sum()) < 240  # the NMS suppressed some of the 256 boxes and kept many
+    assert torch.equal(rois, ref_rois) and torch.equal(scores, ref_scores) and torch.equal(valid, ref_valid)
+    assert fast.keys() == slow.keys() and all(torch.equal(fast[k], slow[k]) for k in fast)
+
+
 def assert_same_rows(got, ref, atol=1e-4):
     """Same rows up to order: near-equal scores may be ranked differently by two runtimes."""
     assert got.shape == ref.shape
