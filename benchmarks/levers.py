@@ -1,11 +1,14 @@
 """Training levers measured by draws: each model trained with seeds 0..K-1 with and without a lever, and the
 spread of its val AP40 3D moderate (and, with ``--headline``, of the eager model's headline AP40 3D on a SOTIF
-set's test frames) over the draws. A lever is adopted when it narrows the spread at no loss of mean.
+set's test frames) over the draws. A lever is adopted when it narrows the spread at no loss of mean; a lever
+that saves time (``amp``) when its mean is not lower.
 
     python benchmarks/levers.py --data RUN/data/train [--headline RUN/data/sotif] [--models second,pointpillars]
-        [--levers ema] [--seeds 2] [--out /tmp/levers]
+        [--levers ema,amp] [--seeds 2] [--out /tmp/levers]
 
-Levers: ``ema`` (Schedule.ema = 0.999: the exponential moving average of the weights, evaluated and exported).
+Levers: ``ema`` (Schedule.ema = 0.999: the exponential moving average of the weights, evaluated and exported);
+``amp`` (Schedule.amp = "bf16": each step's forward pass and loss under bfloat16 autocast, ``harness.amp``; only on
+a CPU with native bf16, refused elsewhere).
 Each training is ``harness.train.train`` on the compact profile (the default run's), one thread, its checkpoint
 under ``--out/<model>-<lever>-seed<k>`` (an interrupted benchmark resumes every training). Prints a Markdown
 table: model, lever, draws, val mean / min / max, headline mean / min / max, training seconds per draw.
@@ -22,7 +25,7 @@ import torch
 from harness.train import train, validation_ap
 from models import zoo
 
-LEVERS = {"none": {}, "ema": {"ema": 0.999}}
+LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}}
 
 
 def draw(model: str, lever: str, seed: int, data: Path, out: Path, headline: Path | None, profile: str) -> dict:

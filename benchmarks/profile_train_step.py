@@ -3,12 +3,14 @@ profile, one thread, after warm-up), split into GEMM/conv, sparse gather/scatter
 building, voxelisation, point ops, RoI pooling, target assignment, losses, NMS in training, data
 loading + augmentation, optimizer and the rest; and the seconds per step without the profiler.
 
-    python -m benchmarks.profile_train_step --data DIR [--models a,b] [--warmup 2] [--steps 4]
+    python -m benchmarks.profile_train_step --data DIR [--models a,b] [--warmup 2] [--steps 4] [--amp bf16]
 
 A step is what one training process spends per batch on one core (glibc malloc keeping freed
 memory, as in ``harness.malloc``): reading and augmenting the
 batch's frames (``harness.train.load_batch``, ground-truth sampling for LiDAR-only models), the
 forward and loss, backward, gradient clipping and AdamW. Batches are those of epoch 0 of seed 0.
+With ``--amp bf16`` the forward and loss run under the training's autocast (``harness.amp``), as with
+``train --amp bf16``.
 
 Attribution: the functions in ``REGISTRY`` are wrapped in ``record_function`` for the profiled
 steps; an op's own time goes to the innermost wrapped function around it (a backward op to that
@@ -19,6 +21,7 @@ profiler's own overhead inflates many-small-op code; the "s/step" column is time
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import importlib
 import inspect
@@ -148,11 +151,21 @@ def attribute(events) -> dict[str, float]:
     return totals
 
 
-class Stepper:
-    """One model's training steps on the batches of epoch 0 (seed 0), as ``harness.train`` takes them."""
+def step_autocast(amp: str):
+    """The training step's autocast of ``amp`` ("" none)."""
+    if not amp:
+        return contextlib.nullcontext()
+    from harness.amp import autocast  # imported only when asked for: paired_train_step runs this file on older code too
+    return autocast(amp)
 
-    def __init__(self, name: str, data: Path):
+
+class Stepper:
+    """One model's training steps on the batches of epoch 0 (seed 0), as ``harness.train`` takes them
+    (``amp``: under that autocast, as ``Schedule.amp``)."""
+
+    def __init__(self, name: str, data: Path, amp: str = ""):
         torch.manual_seed(0)
+        self.amp = amp
         self.net = zoo.build(name, "compact")
         self.net.train()
         self.net.sampling_rng = np.random.default_rng([0, 0, 1])
@@ -166,22 +179,27 @@ class Stepper:
         self.database = (load_or_build(data, data / "gt_database", self.aug.gt_sampling)
                          if uses_gt_sampling(self.net, self.aug) else None)
         self.tcfg = zoo.resolve(name, "compact").schedule
-        self.optimizer = torch.optim.AdamW(self.net.parameters(), lr=1e-4, weight_decay=self.tcfg.weight_decay)
+        # the one-cycle schedule's first rate (harness.train: div_factor 10), that of a training's first steps
+        self.optimizer = torch.optim.AdamW(self.net.parameters(), lr=self.tcfg.lr / 10,
+                                           weight_decay=self.tcfg.weight_decay)
         self.order = np.random.default_rng([0, 0]).permutation(len(self.ds))
 
-    def step(self, k: int) -> None:
+    def step(self, k: int) -> float:
+        """Step ``k`` (its batch and draws); returns its loss."""
         bs = self.tcfg.batch_size
         frames = self.order[(k * bs) % len(self.ds):][:bs]
         with record_function(_PREFIX + "other"):  # Python time outside every op and wrapped function
             with record_function(_PREFIX + "data + augment"):
                 rng = np.random.default_rng([0, 0, k])  # as harness.train.load_batch (absent from older code)
                 samples = [augment(self.ds[int(i)], rng, self.aug, self.database) for i in frames]
-            loss = self.net.loss(samples)["loss"]
+            with step_autocast(self.amp):
+                loss = self.net.loss(samples)["loss"]
             loss.backward()
             with record_function(_PREFIX + "optimizer"):
                 torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.tcfg.grad_clip)
                 self.optimizer.step()
                 self.optimizer.zero_grad(set_to_none=True)
+        return float(loss.detach())
 
 
 def seconds_per_step(stepper: Stepper, first: int, steps: int) -> float:
@@ -191,10 +209,10 @@ def seconds_per_step(stepper: Stepper, first: int, steps: int) -> float:
     return (time.perf_counter() - t0) / steps
 
 
-def profile_model(name: str, data: Path, warmup: int, steps: int) -> tuple[dict[str, float], float]:
+def profile_model(name: str, data: Path, warmup: int, steps: int, amp: str = "") -> tuple[dict[str, float], float]:
     """Seconds per step of each category (profiled) and the unprofiled seconds per step, both
     over the same ``steps`` batches after ``warmup`` steps."""
-    stepper = Stepper(name, data)
+    stepper = Stepper(name, data, amp)
     seconds_per_step(stepper, 0, warmup)
     state = {k: v.clone() for k, v in stepper.net.state_dict().items()}
     opt_state = stepper.optimizer.state_dict()
@@ -214,24 +232,28 @@ def main(argv=None) -> int:
     p.add_argument("--models", default=",".join(zoo.MODEL_NAMES))
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--steps", type=int, default=4)
+    p.add_argument("--amp", choices=["bf16"], help="steps under the training's autocast (train --amp)")
     p.add_argument("--serve", action="store_true", help="for paired_train_step: after the warm-up of the one "
-                   "model, read step numbers from stdin and print each step's seconds")
+                   "model, read step numbers from stdin and print each step's seconds and loss")
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     keep_freed_memory()  # as the training processes of `train` and `run` do
     if args.serve:
-        stepper = Stepper(args.models, args.data)
-        seconds_per_step(stepper, 0, args.warmup)
+        stepper = Stepper(args.models, args.data, args.amp or "")
+        if args.warmup:  # --warmup 0: the steps served are a training's first
+            seconds_per_step(stepper, 0, args.warmup)
         print("ready", flush=True)
         for line in sys.stdin:
-            print(seconds_per_step(stepper, int(line), 1), flush=True)
+            start = time.perf_counter()
+            loss = stepper.step(int(line))
+            print(time.perf_counter() - start, loss, flush=True)
         return 0
     instrument()
     short = [c.split(" (")[0] for c in CATEGORIES]
     print("| model | s/step | profiled s/step | " + " | ".join(short) + " | GEMM share |")
     print("|---|" + "---:|" * (len(CATEGORIES) + 3))
     for name in args.models.split(","):
-        cats, plain = profile_model(name, args.data, args.warmup, args.steps)
+        cats, plain = profile_model(name, args.data, args.warmup, args.steps, args.amp or "")
         total = sum(cats.values())
         cells = " | ".join(f"{100 * cats[c] / total:.0f} %" for c in CATEGORIES)
         print(f"| {name} | {plain:.2f} | {total:.2f} | {cells} | {100 * cats[GEMM] / total:.0f} % |", flush=True)

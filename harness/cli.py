@@ -184,6 +184,8 @@ def cmd_train(a) -> int:
         if not 0.0 <= a.ema < 1.0:
             raise ValueError(f"--ema {a.ema:g}: the average's decay per step lies in [0, 1) (0: no average)")
         recipe = replace(recipe, schedule=replace(recipe.schedule, ema=a.ema))
+    if a.amp:
+        recipe = replace(recipe, schedule=replace(recipe.schedule, amp=a.amp))
     workers = a.workers or default_workers(recipe, device=a.device)
     ckpt = train(recipe, Path(a.data), Path(a.out), epochs=a.epochs, device=a.device,
                  seed=a.seed, progress=not a.quiet, workers=workers, force=a.force, init_from=a.init_from)
@@ -391,6 +393,11 @@ def _add_train(sub, quiet) -> None:
                    help="keep an exponential moving average of the weights with this decay per step (e.g. "
                         "0.999; warmed up as TensorFlow's) and checkpoint, evaluate and export it (default: the "
                         "profile's, none)")
+    s.add_argument("--amp", choices=["bf16"],
+                   help="run each step's forward pass and loss in bfloat16 (CPU autocast; the weights, optimizer, "
+                        "checkpoint, validation and export stay float32), where the CPU has native bf16 (AMX / "
+                        "AVX512-BF16); elsewhere refused with exit 2, naming the CPU flags missing (default: the "
+                        "profile's, float32)")
     s.set_defaults(func=cmd_train)
 
 

@@ -32,6 +32,7 @@ import torch.multiprocessing as mp
 from torch.optim.swa_utils import AveragedModel
 from tqdm import tqdm
 
+from harness.amp import autocast, check_amp
 from harness.augment import AugmentConfig, augment
 from harness.core.files import atomic_write_bytes
 from harness.dataset import KittiDataset, config_hash, dataset_hash, has_split
@@ -140,7 +141,8 @@ def _run_epoch(net, ds, optimizer, scheduler, tcfg: Schedule, seed: int, epoch: 
                ema: AveragedModel | None = None) -> float:
     """One epoch; with ``world`` > 1 data-parallel workers, this one (``rank``) takes the frames
     ``rank::world`` of every batch and the step is taken on the gradients summed over all of them.
-    ``ema``: the weight average, updated after every step."""
+    ``ema``: the weight average, updated after every step. The forward pass and loss run under ``tcfg.amp``'s
+    autocast (``harness.amp``); the backward pass, clipping and step in the weights' float32."""
     net.train()
     losses = []
     batches = _batches(len(ds), tcfg.batch_size, seed, epoch)
@@ -163,11 +165,12 @@ def _run_epoch(net, ds, optimizer, scheduler, tcfg: Schedule, seed: int, epoch: 
                 pending = loader.submit(load, step + 1)
             optimizer.zero_grad(set_to_none=True)
             if world == 1:
-                loss = net.loss(samples)["loss"]
+                with autocast(tcfg.amp):
+                    loss = net.loss(samples)["loss"]
                 loss.backward()
                 value = float(loss.detach())
             else:
-                value = _data_parallel_backward(net, samples, len(batches[step]))
+                value = _data_parallel_backward(net, samples, len(batches[step]), tcfg.amp)
             if not math.isfinite(value):  # before the step: the weights stay those of the last good one
                 frames = ", ".join(ds.frame_ids[int(i)] for i in batches[step])
                 raise ValueError(f"{ds.root}: the training loss is {value} at epoch {epoch + 1}, step {step + 1} "
@@ -184,7 +187,7 @@ def _run_epoch(net, ds, optimizer, scheduler, tcfg: Schedule, seed: int, epoch: 
     return float(np.mean(losses)) if losses else math.nan
 
 
-def _data_parallel_backward(net, samples: list, batch_frames: int) -> float:
+def _data_parallel_backward(net, samples: list, batch_frames: int, amp: str = "") -> float:
     """Backward of this worker's ``samples``, then the all-reduce that gives every worker the
     gradient of the whole batch (each worker's weighted by its share of the batch's frames, so
     the sum is the mean over the batch's frames, as in one process), the BatchNorm running
@@ -194,7 +197,8 @@ def _data_parallel_backward(net, samples: list, batch_frames: int) -> float:
     before = [b.clone() for b in counters]
     value = 0.0
     if samples:  # the last batch of an odd frame count leaves a worker without frames
-        loss = net.loss(samples)["loss"]
+        with autocast(amp):
+            loss = net.loss(samples)["loss"]
         loss.backward()
         value = float(loss.detach())
     params = [p for p in net.parameters() if p.requires_grad]
@@ -480,6 +484,7 @@ def train(model: str | ModelRecipe, data: Path, out: Path, profile: str | None =
     Under ``torchrun`` (several GPUs or machines) every launched process is one such worker.
     ``init_from``: a checkpoint of a sibling model whose matching weights start the training
     (``models.zoo.warm_start``); its digest is part of the training's identity.
+    A schedule with ``amp`` (``harness.amp``) is refused, before any work, on a CPU without native bfloat16.
     """
     data, out = Path(data), Path(out)
     init_from = None if init_from is None else Path(init_from)
@@ -497,6 +502,7 @@ def train(model: str | ModelRecipe, data: Path, out: Path, profile: str | None =
     if device == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"device 'cuda' asked for, but torch {torch.__version__} sees no CUDA device here; "
                          "train with --device cpu")
+    check_amp(recipe.schedule.amp, device)
     _replaceable_checkpoint(out / "checkpoint.pt", recipe.model, force)
     if world > 1 and device == "cuda":
         torch.cuda.set_device(int(os.environ.get("LOCAL_RANK", "0")))

@@ -92,13 +92,14 @@ def head_convs(c_in: int, anchors: int, classes: int = 1) -> tuple[nn.Conv2d, nn
 
 def head_outputs(feats: Tensor, convs: tuple[nn.Conv2d, nn.Conv2d, nn.Conv2d]) -> tuple[Tensor, Tensor, Tensor]:
     """(1, C, H, W) -> class logits (A, n), box residuals (A, 7), direction logits (A, 2) of the
-    ``head_convs`` ``convs``, A = H * W * anchors per cell, in the conv layout (cell, anchor).
+    ``head_convs`` ``convs``, A = H * W * anchors per cell, in the conv layout (cell, anchor); float32.
 
     The three 1x1 convs run as one conv with their stacked weights (the same products): torch's
     convolution of a large map into 2 or 4 channels is several times slower than into their sum
     (in SECOND's training step the three separate convs took ~9 %).
     """
-    out = F.conv2d(feats, torch.cat([c.weight for c in convs]), torch.cat([c.bias for c in convs]))
+    # float32 also under autocast (``train --amp``): the losses, the decoding and the proposals' ranking read it
+    out = F.conv2d(feats, torch.cat([c.weight for c in convs]), torch.cat([c.bias for c in convs])).float()
     out = out[0].permute(1, 2, 0).reshape(-1, out.shape[1])  # (H * W, anchors * (n + 9))
     k, b = convs[0].out_channels, convs[1].out_channels  # anchors * n, anchors * 7
     return out[:, :k].reshape(-1, 7 * k // b), out[:, k:k + b].reshape(-1, 7), out[:, k + b:].reshape(-1, 2)

@@ -15,6 +15,7 @@ A detector is an ``nn.Module`` built from a frozen config dataclass. The harness
 """
 from __future__ import annotations
 
+import contextlib
 from typing import Iterable
 
 import numpy as np
@@ -35,6 +36,15 @@ def training_form() -> bool:
     """True in eager mode with autograd on: code with a faster-to-train form of an op (same values
     and gradients as its inference / graph form) takes that one."""
     return torch.is_grad_enabled() and not tracing()
+
+
+def no_autocast(device: str = "cpu"):
+    """A context with autocast off, for what stays float32 under ``train --amp bf16``: coordinates that a matmul
+    computes (a bfloat16 pixel coordinate near 1,000 px is off by up to 4 px) and the sparse convolutions
+    (``models.sparse.gather_gemm``). Nothing where autocast is off (inference, export: the graph is unchanged)."""
+    if torch.is_autocast_enabled(device):
+        return torch.autocast(device, enabled=False)
+    return contextlib.nullcontext()
 
 
 def reset_norm_statistics(model: nn.Module) -> None:

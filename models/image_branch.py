@@ -23,6 +23,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional as F
 
+from models.base import no_autocast
 from models.vfe import RowBatchNorm
 
 MIN_DEPTH = 0.1  # metres in front of the camera below which a point gets no image feature
@@ -120,7 +121,8 @@ def project_points(xyz: Tensor, lidar2img: Tensor) -> tuple[Tensor, Tensor]:
     Points with depth < MIN_DEPTH get finite placeholder coordinates; callers mask them by depth.
     """
     homo = torch.cat([xyz, torch.ones_like(xyz[:, :1])], dim=1)  # (N, 4)
-    cam = homo @ lidar2img.t()  # (N, 4): (u*d, v*d, d, 1)
+    with no_autocast(xyz.device.type):
+        cam = homo @ lidar2img.t()  # (N, 4): (u*d, v*d, d, 1)
     depth = cam[:, 2]  # (N,) m along the optical axis
     safe = torch.where(depth >= MIN_DEPTH, depth, torch.ones_like(depth))
     uv = cam[:, :2] / safe[:, None]  # (N, 2) pixels

@@ -307,8 +307,8 @@ class PartA2(Detector):
         x = SparseTensor(self.vfe(voxels), voxels.coords, voxels.shape)  # (V, 4)
         fine, bev = self.unet(x)  # (V, C1), (1, C*D, H', W')
         xyz = voxel_centres(fine, self.grid)  # (V, 3) metres
-        seg = self.seg_head(fine.features).squeeze(1)  # (V,)
-        part = self.part_head(fine.features)  # (V, 3)
+        seg = self.seg_head(fine.features).squeeze(1).float()  # (V,) float32 also under autocast (losses, pooling)
+        part = self.part_head(fine.features).float()  # (V, 3)
         return xyz, fine.features, seg, part, bev
 
     def stage1(self, points: Tensor):

@@ -320,7 +320,8 @@ class PointRCNN(Detector):
     def stage_one(self, pts: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """pts (n0, 4) -> features (n0, C), seg logit (n0,), box head output (n0, B)."""
         feats = self.backbone(pts[:, :3], pts[:, 3:4])
-        return feats, self.seg_head(feats)[:, 0], self.box_head(feats)
+        # the heads' outputs float32 also under autocast: the losses, decoding and proposals' ranking read them
+        return feats, self.seg_head(feats)[:, 0].float(), self.box_head(feats).float()
 
     def decode_top(self, pts: Tensor, seg: Tensor, box: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         """The points' scores (n0,), the pre_nms best of them (T,) best first, their boxes (T, 7):

@@ -161,7 +161,7 @@ class VoxelSetAbstraction(nn.Module):
             parts.append(sa(xyz, feats, keypoints))  # (P, C_level)
         parts.append(self.sample_bev(bev[0], keypoints))  # (P, C_bev)
         feats = self.fuse(torch.cat(parts, 1))  # (P, kp_channels)
-        logit = self.weight(feats).squeeze(1)  # (P,)
+        logit = self.weight(feats).squeeze(1).float()  # (P,) float32 also under autocast (its loss)
         return feats * torch.sigmoid(logit)[:, None], logit
 
     def sample_bev(self, bev: Tensor, xyz: Tensor) -> Tensor:

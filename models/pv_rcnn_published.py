@@ -25,6 +25,7 @@ from typing import Sequence
 import torch
 from torch import Tensor, nn
 
+from models.base import no_autocast
 from models.pointnet2 import PointBatchNorm, SetAbstraction, farthest_point_sample
 
 
@@ -110,7 +111,7 @@ class PublishedVSA(nn.Module):
                  self.raw(points[:, :3], points[:, 3:4], keypoints)]  # (P, C_raw)
         parts += [sa(xyz, feats, keypoints) for sa, (xyz, feats) in zip(self.levels, levels)]  # (P, C_level)
         before = torch.cat(parts, 1)  # (P, 640) point_features_before_fusion
-        logit = self.weight(before).squeeze(1)  # (P,)
+        logit = self.weight(before).squeeze(1).float()  # (P,) float32 also under autocast (its loss)
         return self.fuse(before) * torch.sigmoid(logit)[:, None], logit
 
 
@@ -124,7 +125,8 @@ def grid_points(rois: Tensor, grid: int) -> Tensor:
     c, s = torch.cos(rois[:, 6]), torch.sin(rois[:, 6])
     zeros, ones = torch.zeros_like(c), torch.ones_like(c)
     rot = torch.stack((c, s, zeros, -s, c, zeros, zeros, zeros, ones), 1).view(-1, 3, 3)  # (K, 3, 3)
-    return torch.matmul(local, rot) + rois[:, None, 0:3]
+    with no_autocast(rois.device.type):
+        return torch.matmul(local, rot) + rois[:, None, 0:3]
 
 
 class PublishedRoIGridPool(nn.Module):

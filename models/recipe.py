@@ -1,8 +1,9 @@
 """A detector's recipe: how each profile trains it and what starts it, beside its architecture.
 
 - ``Schedule``: the training loop's settings (epochs, batch size, peak learning rate of the one-cycle
-  schedule, weight decay, gradient clip). Its fields are part of a training's identity (the
-  checkpoint's ``config_hash`` and the run's train-stage key): renaming one retrains every model.
+  schedule, weight decay, gradient clip) and its levers (weight average, mixed precision). Its fields are
+  part of a training's identity (the checkpoint's ``config_hash`` and the run's train-stage key):
+  renaming one retrains every model.
 - ``PROFILE_SCHEDULES``: the schedule every model of a profile shares unless its recipe says otherwise.
 - ``Recipe``: what one model changes of them, and its warm start. Each ``models/<name>.py`` defines
   ``RECIPE = Recipe(...)`` beside its ``CONFIGS``.
@@ -15,6 +16,7 @@ from __future__ import annotations
 from dataclasses import asdict, dataclass, field, replace
 
 PROFILES = ("tiny", "compact", "kitti")
+AMP_MODES = ("", "bf16")  # Schedule.amp: float32, or autocast to bfloat16 (harness.amp)
 
 
 @dataclass(frozen=True)
@@ -27,13 +29,21 @@ class Schedule:
     # exponential moving average of the weights (harness.train): the decay per step, 0 = off; a training with it
     # evaluates, checkpoints and exports the averaged copy
     ema: float = 0.0
+    # mixed precision of the forward pass and loss (harness.amp): "" float32, "bf16" CPU autocast to bfloat16 where
+    # the CPU has native bf16; the weights, optimizer state, checkpoint, validation and export stay float32
+    amp: str = ""
+
+    def __post_init__(self):
+        if self.amp not in AMP_MODES:
+            raise ValueError(f"Schedule: amp {self.amp!r}; expected one of {', '.join(map(repr, AMP_MODES))}")
 
     def key(self) -> dict:
-        """What identifies a training by its schedule: the fields, less those added since that are off (``ema`` 0),
-        so that the trainings and runs made before them keep their keys."""
+        """What identifies a training by its schedule: the fields, less those added since that are off (``ema`` 0,
+        ``amp`` ""), so that the trainings and runs made before them keep their keys."""
         out = asdict(self)
-        if not out["ema"]:
-            del out["ema"]
+        for lever in ("ema", "amp"):
+            if not out[lever]:
+                del out[lever]
         return out
 
 

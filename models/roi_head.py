@@ -208,7 +208,7 @@ class RefineHead(nn.Module):
     """Shared FC layers on pooled RoI features, then a confidence branch and a residual branch
     (SHARED_FC, CLS_FC and REG_FC of OpenPCDet's RoI heads).
 
-    forward(x (K, C)) -> (logit (K,), deltas (K, 7)).
+    forward(x (K, C)) -> (logit (K,), deltas (K, 7)), float32 also under autocast (the losses and decoding read them).
     """
 
     def __init__(self, in_channels: int, hidden: Sequence[int], branch: Sequence[int] = (),
@@ -229,7 +229,7 @@ class RefineHead(nn.Module):
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         h = self.shared(x)  # (K, hidden[-1] or C)
-        return self.cls(self.cls_fc(h)).squeeze(1), self.reg(self.reg_fc(h))
+        return self.cls(self.cls_fc(h)).squeeze(1).float(), self.reg(self.reg_fc(h)).float()
 
 
 def iou_score_target(iou: Tensor, cfg: RoITargetConfig) -> Tensor:

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 
+from harness.amp import native_bf16
 from harness.augment import AugmentConfig
 from harness.dataset import write_synthetic_dataset
 from harness.gt_database import GtSamplingConfig
@@ -353,3 +354,32 @@ def test_a_training_with_a_weight_average_checkpoints_it_and_resumes_it(tmp_path
     plain = torch.load(train("pointpillars", data, tmp_path / "plain", profile="tiny", epochs=2, seed=0,
                              progress=False), weights_only=False)
     assert "train_state_dict" not in plain and plain["config_hash"] != whole["config_hash"]
+
+
+def test_amp_is_refused_on_a_cpu_without_native_bf16(tmp_path, capsys, monkeypatch):
+    """train --amp bf16 where neither avx512_bf16 nor amx_bf16 is present: exit 2 naming both flags, nothing written."""
+    from harness.cli import main
+    monkeypatch.setattr(torch.cpu, "get_capabilities",
+                        lambda: {"cpu_name": "Test CPU", "avx2": True, "avx512_bf16": False, "amx_bf16": False})
+    data = write_synthetic_dataset(tmp_path / "data", frames=2, seed=6)
+    assert main(["--quiet", "train", "--model", "pointpillars", "--profile", "tiny", "--data", str(data),
+                 "--out", str(tmp_path / "run"), "--amp", "bf16"]) == 2
+    err = capsys.readouterr().err
+    assert "--amp bf16: Test CPU has no native bfloat16" in err and "avx512_bf16 / amx_bf16" in err
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.skipif(not native_bf16(),
+                    reason="this CPU has no native bfloat16 (avx512_bf16 / amx_bf16): train --amp is refused here")
+def test_a_bf16_training_checkpoints_float32_weights(tmp_path):
+    """Schedule.amp: the checkpoint's weights and optimizer state are float32 and the training is validated (in
+    float32, outside the autocast of its steps)."""
+    from dataclasses import replace
+    recipe = zoo.resolve("pointpillars", "tiny")
+    data = write_synthetic_dataset(tmp_path / "data", frames=3, seed=3, val=1)
+    state = torch.load(train(replace(recipe, schedule=replace(recipe.schedule, amp="bf16")), data, tmp_path / "amp",
+                             epochs=1, seed=0, progress=False), weights_only=False)
+    assert np.isfinite(state["final_loss"]) and "val_ap" in state
+    assert all(v.dtype == torch.float32 for v in state["state_dict"].values() if v.is_floating_point())
+    assert all(v.dtype == torch.float32 for s in state["optimizer"]["state"].values() for v in s.values()
+               if torch.is_tensor(v) and v.is_floating_point())

@@ -84,9 +84,22 @@ def test_recipe_errors_are_clear():
 
 def test_a_schedule_key_leaves_out_the_levers_that_are_off():
     """A training keyed before ``ema`` existed keeps its key while the average is off; with it on, the key differs."""
-    from dataclasses import asdict, replace
+    from dataclasses import replace
 
     from models.recipe import Schedule
     s = Schedule(epochs=4, batch_size=2, lr=3e-3)
     assert s.key() == {"epochs": 4, "batch_size": 2, "lr": 3e-3, "weight_decay": 0.01, "grad_clip": 10.0}
-    assert replace(s, ema=0.999).key() == asdict(replace(s, ema=0.999))
+    assert replace(s, ema=0.999).key() == {**s.key(), "ema": 0.999}
+
+
+def test_a_schedule_key_leaves_out_amp_while_off():
+    """Mixed precision off (amp ""), the key is the one before it existed; on, the key names it; an unknown mode
+    is refused."""
+    from dataclasses import replace
+
+    from models.recipe import Schedule
+    s = Schedule(epochs=4, batch_size=2, lr=3e-3)
+    assert "amp" not in s.key() and "amp" not in replace(s, ema=0.999).key()
+    assert replace(s, amp="bf16").key() == {**s.key(), "amp": "bf16"}
+    with pytest.raises(ValueError, match="amp 'fp16'"):
+        replace(s, amp="fp16")
