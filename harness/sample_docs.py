@@ -35,13 +35,13 @@ SAMPLE = Path("reports") / "sample"
 TEMPLATE = "sample_docs.md.j2"
 DOCUMENTS = {  # document (relative to ROOT) -> the blocks it must hold, each once
     "README.md": ("readme-table",),
-    "docs/results.md": ("data-sets", "sweep-instances", "preset-margins", "how-to-read"),
+    "docs/results.md": ("data-sets", "sweep-instances", "preset-verdict", "how-to-read"),
 }
 BLOCKS = {  # block name -> the function of harness.sample_numbers giving its template's arguments
     "readme-table": sample_numbers.readme_table,
     "data-sets": sample_numbers.data_sets,
     "sweep-instances": sample_numbers.sweep_instances,
-    "preset-margins": sample_numbers.preset_margins,
+    "preset-verdict": sample_numbers.preset_verdict,
     "how-to-read": sample_numbers.how_to_read,
 }
 OPEN = re.compile(r"^<!-- sample:([a-z0-9-]+) -->$")

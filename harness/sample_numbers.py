@@ -14,13 +14,17 @@ from harness.cells import num, span
 from harness.core.kitti import KittiError
 from harness.report import MODEL_LABELS
 
-AXES = {"rain": ("rain_rate_mmh", "rain", "mm/h", 1), "fog": ("fog_mor_m", "fog", "m", 0),  # sweep_axis ->
-        "water": ("road_water", "water", "", 2)}  # (column, word, unit, decimals)
+AXES = {"rain": ("rain_mm_h", "rain", "mm/h", 1), "fog": ("fog_mor_m", "fog", "m", 0),  # sweep_axis ->
+        "water": ("water", "water", "", 2)}  # (instance column, word, unit, decimals)
 AXIS_WORDS = {"rain": "rain", "fog": "fog visibility", "water": "road water"}
 PAINT = {"nir_black": "NIR-black"}
 BODY = {"suv": "SUV"}
 RAIN_GRADES = ("soft rain", "mid rain", "hard rain")
 CLASSES = ("dry", "wet", "rain")
+CARS, APART = "car", "outside the learned classes"  # harness.reference.body_class
+INSTANCE_COLUMNS = ["model", "set", "instance", "verdict", "body", "paint", "reflectance", "preventable", "reason",
+                    "reference_confirm_s", "reference_a_req_mps2", "confirm_s", "delay_s", "a_req_mps2", "passed",
+                    "body_class"]
 
 
 class MissingTable(KittiError):
@@ -56,6 +60,11 @@ def _same(values, digits: int = 0, sep: str = " / ") -> str:
     return texts[0] if len(set(texts)) == 1 else sep.join(texts)
 
 
+def _one(texts) -> str:
+    """One text when all read the same, else each, comma-separated."""
+    return texts[0] if len(set(texts)) == 1 else ", ".join(texts)
+
+
 def _each(values, what: str) -> str:
     """"74 frames each", or "74 / 80 / 74 frames"."""
     text = _same(values)
@@ -81,11 +90,16 @@ def _table(df: pd.DataFrame, right: set) -> dict:
 
 
 # ----------------------------------------------------------------------------- counts shared by the blocks
+def _verdicts(t: SampleTables) -> pd.DataFrame:
+    """The instance table (``harness.verdict``): one row per model, set, instance and verdict kind."""
+    return t("sotif_instances", INSTANCE_COLUMNS)
+
+
 def _instances(t: SampleTables, data_set: str) -> pd.DataFrame:
-    """The first model's instances of ``data_set`` (feasibility and the scenario are the same for every model)."""
-    inst = t("sotif_instances", ["model", "set", "instance_key", "instance", "weather", "pass", "feasible",
-                                 "margin_m", "ideal_margin_m"])
-    rows = inst[inst["set"] == data_set]
+    """The first model's perception rows of ``data_set``: one per instance (the reference, the conditions and
+    the preventability are the same for every model)."""
+    inst = _verdicts(t)
+    rows = inst[(inst["set"] == data_set) & (inst["verdict"] == "perception")]
     if rows.empty:
         raise MissingTable(t.folder / "sotif_instances.csv", f"no instance of the {data_set!r} set")
     return rows[rows["model"] == rows["model"].iloc[0]]
@@ -96,6 +110,7 @@ def sotif_counts(t: SampleTables) -> dict:
     by_weather = t("data_by_weather", ["weather", "n_test"])
     detail = t("weather_detail", ["model", "n_car"])
     sotif = _instances(t, "sotif")
+    t("sotif_instances", ["weather"])
     tested = by_weather[by_weather["n_test"] > 0]
     per_preset = sotif.groupby("weather").size()
     return {"presets": len(tested), "per_preset": _same(per_preset.unique()), "instances": len(sotif),
@@ -103,12 +118,26 @@ def sotif_counts(t: SampleTables) -> dict:
             "cars": num(detail[detail["model"] == detail["model"].iloc[0]]["n_car"].sum())}
 
 
-def _passed(t: SampleTables) -> pd.DataFrame:
-    """Per model and set: instances passed, of the feasible ones."""
-    inst = t("sotif_instances", ["model", "set", "pass", "feasible"])
-    feasible = _true(inst["feasible"])
-    inst = inst.assign(ok=_true(inst["pass"]) & feasible, feasible=feasible)
-    return inst.groupby(["model", "set"], sort=False).agg(n_pass=("ok", "sum"), n=("feasible", "sum"))
+def _rates(t: SampleTables) -> pd.DataFrame:
+    """Per model, set, verdict and body class: preventable instances passed, with the Wilson interval."""
+    rates = t("sotif_pass_rates", ["model", "set", "verdict", "body_class", "column", "n", "n_pass", "lo", "hi"])
+    return rates[rates["column"] == "all"].set_index(["model", "set", "verdict", "body_class"])
+
+
+def _rate(rates: pd.DataFrame, key: tuple, interval: bool = False) -> str:
+    """"12/15", or "12/15 (0.55-0.93)" with the interval; "–" when the key has no row, "0/0" with none to judge."""
+    if key not in rates.index:
+        return "–"
+    r = rates.loc[key]
+    text = f"{int(r['n_pass'])}/{int(r['n'])}"
+    return f"{text} ({r['lo']:.2f}-{r['hi']:.2f})" if interval and r["n"] > 0 else text
+
+
+def _phantoms(t: SampleTables) -> pd.Series:
+    """Phantom in-path boxes per hour over every judged frame of both scenario sets, per model."""
+    ph = t("sotif_phantoms", ["model", "hours", "n_false"])
+    g = ph.groupby("model", sort=False)[["n_false", "hours"]].sum()
+    return g["n_false"] / g["hours"].where(g["hours"] > 0)
 
 
 def _rain_rates(t: SampleTables, presets) -> list[str]:
@@ -116,36 +145,56 @@ def _rain_rates(t: SampleTables, presets) -> list[str]:
     return [f"{by_weather[p]:g}" if p in by_weather.index else "?" for p in presets]
 
 
+def _drive(rows: pd.DataFrame) -> pd.Series:
+    """The drive number of each instance key ("ClearNoon#1" -> 1; a key without one is the study's drive, 0)."""
+    return rows["instance"].astype(str).str.extract(r"#(\d+)$")[0].fillna("0").astype(int)
+
+
+def _preventable(rows: pd.DataFrame) -> pd.Series:
+    return _true(rows["preventable"])
+
+
+def _reasons(rows: pd.DataFrame) -> str:
+    """"2 range, 1 kinematics" of the unpreventable instances of ``rows`` ("none" without any)."""
+    counts = rows.loc[~_preventable(rows), "reason"].fillna("?").value_counts()
+    return ", ".join(f"{n} {reason}" for reason, n in counts.items()) or "none"
+
+
 # ----------------------------------------------------------------------------- README
 def readme_table(t: SampleTables) -> dict:
     """The README's results table and the counts behind it."""
     ov = t("overview", ["model", "val AP3D mod", "val frames", "AP3D"])
     rain = t("rain", ["model", "iou", "condition", "group", "n_frames", "n_car", "ap"])
-    rt = t("runtime", ["model", "ort_p50_ms", "size_mb"]).set_index("model")
-    passed = _passed(t)
+    rt = t("runtime", ["model", "ort_p50_ms", "ort_p90_ms", "size_mb"]).set_index("model")
+    rates, phantoms = _rates(t), _phantoms(t)
     r05 = rain[rain["iou"].astype(float) == 0.5]
     ap = r05.pivot_table(index="model", columns="condition", values="ap", aggfunc="first")
     cell = lambda m, conds: " / ".join(num(ap.loc[m, c], 1) if m in ap.index and c in ap.columns and
                                        pd.notna(ap.loc[m, c]) else "–" for c in conds)
-    sets = lambda m: " / ".join(f"{int(passed.loc[(m, s), 'n_pass'])}/{int(passed.loc[(m, s), 'n'])}"
-                                if (m, s) in passed.index else "–" for s in ("sotif", "sweep"))
+    models = list(ov["model"])
     rows = pd.DataFrame({
-        "model": [_label(m) for m in ov["model"]], "val": [num(v, 1) for v in ov["val AP3D mod"]],
-        "AP @0.7": [num(v, 1) for v in ov["AP3D"]], "AP @0.5 dry / wet / rain": [cell(m, CLASSES) for m in ov["model"]],
-        "soft / mid / hard rain": [cell(m, RAIN_GRADES) for m in ov["model"]],
-        "SOTIF passed: presets / sweep": [sets(m) for m in ov["model"]],
-        "latency": [f"{num(rt.loc[m, 'ort_p50_ms'])} ms" if m in rt.index else "–" for m in ov["model"]],
-        "ONNX": [f"{num(rt.loc[m, 'size_mb'], 1)} MB" if m in rt.index else "–" for m in ov["model"]]})
+        "model": [_label(m) for m in models], "val": [num(v, 1) for v in ov["val AP3D mod"]],
+        "AP @0.7": [num(v, 1) for v in ov["AP3D"]], "AP @0.5 dry / wet / rain": [cell(m, CLASSES) for m in models],
+        "soft / mid / hard rain": [cell(m, RAIN_GRADES) for m in models],
+        "sweep cars: perception": [_rate(rates, (m, "sweep", "perception", CARS), True) for m in models],
+        "system": [_rate(rates, (m, "sweep", "system", CARS)) for m in models],
+        "vans, trucks": [_rate(rates, (m, "sweep", "perception", APART)) for m in models],
+        "presets": [_rate(rates, (m, "sotif", "perception", CARS)) for m in models],
+        "phantoms": [f"{num(phantoms[m])}/h" if m in phantoms.index and pd.notna(phantoms[m]) else "–" for m in models],
+        "latency p50 / p90": [f"{num(rt.loc[m, 'ort_p50_ms'])} / {num(rt.loc[m, 'ort_p90_ms'])} ms" if m in rt.index
+                              else "–" for m in models],
+        "ONNX": [f"{num(rt.loc[m, 'size_mb'], 1)} MB" if m in rt.index else "–" for m in models]})
     first = r05[r05["model"] == r05["model"].iloc[0]].set_index("condition")
     sweep = _instances(t, "sweep")
-    return {"table": _table(rows, {"val", "AP @0.7", "SOTIF passed: presets / sweep", "latency", "ONNX"}),
+    cars = sweep[sweep["body_class"] == CARS]
+    return {"table": _table(rows, set(rows.columns) - {"model", "AP @0.5 dry / wet / rain", "soft / mid / hard rain"}),
             "sotif": sotif_counts(t), "val_frames": _same(ov["val frames"].unique()),
             "class_frames": " / ".join(num(first.loc[c, "n_frames"]) for c in CLASSES),
             "class_cars": " / ".join(num(first.loc[c, "n_car"]) for c in CLASSES),
             "grade_rates": " / ".join(_rain_rates(t, [first.loc[g, "group"] for g in RAIN_GRADES])),
             "grade_frames": _each([first.loc[g, "n_frames"] for g in RAIN_GRADES], "frames"),
-            "sweep_instances": len(sweep), "sweep_feasible": int(_true(sweep["feasible"]).sum()),
-            "sweep_axes": _axes_words(sweep)}
+            "sweep_instances": len(sweep), "sweep_axes": _axes_words(sweep), "sweep_cars": len(cars),
+            "sweep_preventable": int(_preventable(cars).sum()), "sweep_apart": len(sweep) - len(cars)}
 
 
 def _axes_words(sweep: pd.DataFrame) -> str:
@@ -155,24 +204,23 @@ def _axes_words(sweep: pd.DataFrame) -> str:
 
 
 # ----------------------------------------------------------------------------- docs/results.md
-def _scenario(row) -> str:
-    """"NIR-black SUV, ego 100 km/h, slow car 78 km/h" of an instance row."""
-    return (f"{_vehicle(row['sc_slow_paint'], row['sc_slow_body'])}, ego {num(row['sc_ego_speed_kmh'])} km/h, "
-            f"slow car {num(row['sc_slow_speed_kmh'])} km/h")
+def _vehicle_row(row) -> str:
+    """"NIR-black SUV, reflectance 0.60" of an instance row."""
+    refl = f", reflectance {row['reflectance']:.2f}" if pd.notna(row["reflectance"]) else ""
+    return f"{_vehicle(row['paint'], row['body'])}{refl}"
 
 
 def _drawn(t: SampleTables) -> list[str]:
-    """The SOTIF set's drawn drives (instance > 0), each as ``_scenario`` words."""
+    """The SOTIF set's drawn drives (instance number > 0), each as its slow vehicle's words."""
     sotif = _instances(t, "sotif")
-    t("sotif_instances", ["sc_slow_paint", "sc_slow_body", "sc_ego_speed_kmh", "sc_slow_speed_kmh"])
-    return [_scenario(g.iloc[0]) for i, g in sotif.groupby("instance") if i > 0]
+    return [_vehicle_row(g.iloc[0]) for n, g in sotif.groupby(_drive(sotif), sort=True) if n > 0]
 
 
 def data_sets(t: SampleTables) -> dict:
     """The three data sets of the sample: SOTIF, sweep, val."""
     ov = t("overview", ["val frames"])
     sweep = _instances(t, "sweep")
-    t("sotif_instances", ["sweep_axis", "sc_ego_speed_kmh", "sc_slow_speed_kmh", *(a[0] for a in AXES.values())])
+    t("sotif_instances", ["sweep_axis", *(a[0] for a in AXES.values())])
     per_axis = sweep.groupby("sweep_axis", sort=False).size()
     axes = []
     for axis, rows in sweep.groupby("sweep_axis", sort=False):
@@ -181,12 +229,12 @@ def data_sets(t: SampleTables) -> dict:
             continue
         column, _, unit, digits = AXES[axis]
         axes.append(f"{AXIS_WORDS[axis]} {span(rows[column].min(), rows[column].max(), digits)} {unit}".rstrip())
+    cars = sweep[sweep["body_class"] == CARS]
     return {"sotif": sotif_counts(t), "drawn": _drawn(t), "sweep_instances": len(sweep),
             "per_axis": f"{per_axis.iloc[0]} per weather axis" if per_axis.nunique() == 1 else
             ", ".join(f"{AXIS_WORDS.get(a, a)} {n}" for a, n in per_axis.items()), "axes": axes,
-            "ego": span(sweep["sc_ego_speed_kmh"].min(), sweep["sc_ego_speed_kmh"].max()),
-            "slow": span(sweep["sc_slow_speed_kmh"].min(), sweep["sc_slow_speed_kmh"].max()),
-            "val_frames": _same(ov["val frames"].unique())}
+            "cars": len(cars), "cars_preventable": int(_preventable(cars).sum()), "cars_reasons": _reasons(cars),
+            "apart": len(sweep) - len(cars), "val_frames": _same(ov["val frames"].unique())}
 
 
 def _condition(row) -> str:
@@ -196,49 +244,62 @@ def _condition(row) -> str:
     return f"{word} {num(row[column], digits)} {unit}".rstrip()
 
 
-def _margin(v) -> str:
-    return "-" if pd.isna(v) else num(v, 1)
+def _a_req(v, preventable: bool) -> str:
+    """A model's a_req cell: m/s^2 to one decimal, "never" when it never confirmed, "–" on an unpreventable one."""
+    if not preventable:
+        return "–"
+    return "never" if pd.isna(v) or not np.isfinite(float(v)) else num(v, 1)
 
 
 def sweep_instances(t: SampleTables) -> dict:
-    """One row per sweep instance: its condition, slow vehicle, closing speed, the ideal margin and each model's."""
-    inst = t("sotif_instances", ["sweep_axis", "closing_speed_mps", "sc_slow_paint", "sc_slow_body",
-                                 *(a[0] for a in AXES.values())])
-    sweep = inst[inst["set"] == "sweep"]
-    if sweep.empty:
-        raise MissingTable(t.folder / "sotif_instances.csv", "no instance of the 'sweep' set")
+    """One row per sweep instance: its condition, slow vehicle, whether it is preventable (else why not), the
+    reference's confirmation and a_req, and each model's perception a_req."""
+    inst = _verdicts(t)
+    t("sotif_instances", ["sweep_axis", *(a[0] for a in AXES.values())])
+    sweep = inst[(inst["set"] == "sweep") & (inst["verdict"] == "perception")]
     first = _instances(t, "sweep").copy()
     first["order"] = [list(AXES).index(a) if a in AXES else len(AXES) for a in first["sweep_axis"]]
     first["value"] = [r[AXES[r["sweep_axis"]][0]] if r["sweep_axis"] in AXES else np.nan for _, r in first.iterrows()]
-    first = first.sort_values(["order", "value", "instance_key"], kind="stable")
-    margins = sweep.pivot_table(index="instance_key", columns="model", values="margin_m", aggfunc="first",
-                                dropna=False)
+    first["number"] = _drive(first)
+    first = first.sort_values(["order", "value", "number"], kind="stable")
+    a_req = sweep.pivot_table(index="instance", columns="model", values="a_req_mps2", aggfunc="first", dropna=False)
     models = list(dict.fromkeys(sweep["model"]))
+    ok = dict(zip(first["instance"], _preventable(first)))
     rows = pd.DataFrame({
-        "instance": first["instance_key"], "condition": [_condition(r) for _, r in first.iterrows()],
-        "slow vehicle": [_vehicle(p, b) for p, b in zip(first["sc_slow_paint"], first["sc_slow_body"])],
-        "closing speed": [f"{num(v * 3.6)} km/h" for v in first["closing_speed_mps"]],
-        "ideal": [num(v, 1) for v in first["ideal_margin_m"]],
-        **{_label(m): [_margin(margins.loc[k, m]) if k in margins.index and m in margins.columns else "-"
-                       for k in first["instance_key"]] for m in models}})
-    return {"table": _table(rows, set(rows.columns) - {"instance", "condition", "slow vehicle"})}
+        "instance": first["instance"], "condition": [_condition(r) for _, r in first.iterrows()],
+        "slow vehicle": [_vehicle_row(r) for _, r in first.iterrows()],
+        "preventable": ["yes" if p else f"no: {r}" for p, r in zip(_preventable(first), first["reason"].fillna("?"))],
+        "reference": [f"{num(s, 1)} s, {num(a, 1)}" if pd.notna(s) and np.isfinite(float(a)) else "never"
+                      for s, a in zip(first["reference_confirm_s"], first["reference_a_req_mps2"])],
+        **{_label(m): [_a_req(a_req.loc[k, m], ok[k]) if k in a_req.index and m in a_req.columns else "–"
+                       for k in first["instance"]] for m in models}})
+    return {"table": _table(rows, set(rows.columns) - {"instance", "condition", "slow vehicle", "preventable",
+                                                       "reference"})}
 
 
-def preset_margins(t: SampleTables) -> dict:
-    """The SOTIF set's verdict: passes per model, the ideal margin per drive and the models' margins."""
-    inst = t("sotif_instances", ["model", "set", "instance", "pass", "feasible", "margin_m", "ideal_margin_m"])
+def preset_verdict(t: SampleTables) -> dict:
+    """The SOTIF set's verdict: preventable instances, passes per model and verdict, the reference's a_req per
+    drive and the models' delays behind it."""
+    inst = _verdicts(t)
     sotif = inst[inst["set"] == "sotif"]
-    passed = _passed(t).xs("sotif", level="set")
+    first = _instances(t, "sotif")
+    rates = _rates(t)
     drawn, drives = _drawn(t), []
-    for i, g in sotif.groupby("instance"):
-        name = "the study's drive" if i == 0 else ("the drawn one" if len(drawn) == 1 else f"drawn drive {i}")
-        drives.append({"name": name if i == 0 or i > len(drawn) else f"{name} ({drawn[i - 1]})",
-                       "ideal": span(g["ideal_margin_m"].min(), g["ideal_margin_m"].max(), 1),
-                       "kept": span(g["margin_m"].min(), g["margin_m"].max(), 1) if g["margin_m"].notna().any()
-                       else "nothing"})
-    return {"presets": sotif_counts(t)["presets"], "n": _same(passed["n"].unique()),
-            "all_pass": bool((passed["n_pass"] == passed["n"]).all()),
-            "passes": span(passed["n_pass"].min(), passed["n_pass"].max()), "drives": drives}
+    for i, (n, g) in enumerate(first.groupby(_drive(first), sort=True)):
+        name = "the study's drive" if i == 0 else (f"the drawn one ({drawn[i - 1]})" if i <= len(drawn) else f"drive {n}")
+        a = g.loc[_preventable(g), "reference_a_req_mps2"]
+        drives.append({"name": name, "reference": span(a.min(), a.max(), 1) if len(a) else "none"})
+    models = list(dict.fromkeys(sotif["model"]))
+    cells = {kind: [_rate(rates, (m, "sotif", kind, CARS)) for m in models] for kind in ("perception", "system")}
+    perception = sotif[(sotif["verdict"] == "perception") & _preventable(sotif)]
+    delay = perception["delay_s"].dropna()
+    a_req = perception["a_req_mps2"].replace(np.inf, np.nan).dropna()
+    return {"presets": sotif_counts(t)["presets"], "n": len(first), "preventable": int(_preventable(first).sum()),
+            "reasons": _reasons(first), "same": {k: len(set(v)) == 1 for k, v in cells.items()},
+            "perception": _one(cells["perception"]), "system": _one(cells["system"]),
+            "models": ", ".join(_label(m) for m in models), "drives": drives,
+            "a_req": span(a_req.min(), a_req.max(), 1) if len(a_req) else "none",
+            "delay": span(delay.min(), delay.max(), 2) if len(delay) else "none"}
 
 
 def how_to_read(t: SampleTables) -> dict:
@@ -251,10 +312,11 @@ def how_to_read(t: SampleTables) -> dict:
     t("sotif_instances", ["precipitation_class"])
     by_class = sotif.groupby("precipitation_class").size()
     sweep = _instances(t, "sweep")
+    cars = sweep[sweep["body_class"] == CARS]
     unit = lambda m: (f"{num(units.loc[m, 'n_units'])} {units.loc[m, 'unit']}s" if m in units.index else "?")
+    drives = _drive(sotif).nunique()
     return {"sotif": sotif_counts(t), "val_frames": _same(ov["val frames"].unique()),
             "corrupt": _same(rob["n_corrupt_presets"].unique()),
-            "class_instances": " / ".join(num(by_class.get(c, 0)) for c in CLASSES),
-            "drives": sotif["instance"].nunique(),
+            "class_instances": " / ".join(num(by_class.get(c, 0)) for c in CLASSES), "drives": drives,
             "pairs_val": unit("val_ap3d_moderate"), "pairs_headline": unit("headline_ap3d"),
-            "sweep_feasible": int(_true(sweep["feasible"]).sum()), "sweep_instances": len(sweep)}
+            "sweep_preventable": int(_preventable(cars).sum()), "sweep_cars": len(cars)}
