@@ -1,5 +1,7 @@
 import json
 import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -199,3 +201,39 @@ def test_a_malformed_boundaries_table_names_the_file(tmp_path, content, message)
     path = re.escape(str(tmp_path / run_boundaries.TABLE))
     with pytest.raises(KittiError, match=f"{path}(:2)?: {re.escape(message)}"):
         report_bounds.read(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def bounded_run(space_run, tmp_path_factory):
+    """The scenario-space run with a boundaries table and the default plan in its config, rendered."""
+    root = Path(shutil.copytree(space_run[0], tmp_path_factory.mktemp("bounded") / "run"))
+    _write_bounds(root)
+    doc = json.loads((root / "results.json").read_text())
+    atomic_write_text(root / "results.json", json.dumps({**doc, "config": {"bounds": "default"}}))
+    report.render(root)
+    return root
+
+
+def test_boundary_rows_lead_the_answer_and_the_table_sits_in_the_space_section(bounded_run):
+    root = bounded_run
+    md = (root / "report.md").read_text()
+    lead = md[md.index("## Where each detector stops finding the slow car in time"):md.index("## Models at a glance")]
+    assert "The bounds rows come first" in lead
+    body = [line for line in lead.splitlines() if line.startswith("| ")][1:]  # after the header
+    assert body[:len(BOUND_ROWS)] == [f"| bounds | {c} | {a} | {b or '–'} | – |" for c, a, b in BOUND_ROWS]
+    assert body[len(BOUND_ROWS)].startswith("| sotif | car-bodied: all |")
+    space = md[md.index("## SOTIF over the scenario space"):]
+    assert space.index('### Boundaries (plan "default"') < space.index("### Model pairs whose verdicts differ")
+    assert "| alpha | fog | 120-60_sedan_silver | 316 | 1,000 | m | bracketed wider than the tolerance (round " \
+           "limit) | 4 |" in space
+    html = (root / "index.html").read_text()
+    assert '<td class="fail">fails everywhere in 0.00-1.00</td>' in html
+    assert '<td class="pass">passes everywhere in 0-100 mm/h</td>' in html
+    assert pd.read_csv(root / run_boundaries.TABLE).equals(BOUNDS)  # the run's file is read, never rewritten
+
+
+def test_a_run_without_boundaries_renders_as_before(space_run):
+    md = (space_run[0] / "report.md").read_text()
+    lead = md[md.index("## Where each detector stops finding the slow car in time"):md.index("## Models at a glance")]
+    assert "| bounds |" not in md and "### Boundaries" not in md and "bounds rows" not in md
+    assert [line for line in lead.splitlines() if line.startswith("| ")][1].startswith("| sotif | car-bodied: all |")
