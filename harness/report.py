@@ -19,7 +19,8 @@ import pandas as pd
 from jinja2 import Environment, FileSystemLoader, StrictUndefined
 from markupsafe import Markup
 
-from harness import data_identity, figures, notes, provenance, rain, rain_figures, report_pairs, report_space, sotif, tables
+from harness import (data_identity, figures, notes, provenance, rain, rain_figures, report_bounds, report_pairs,
+                     report_space, sotif, tables)
 from harness.cells import DISTANCE_BINS, mark_capped
 from harness.core.files import atomic_write_bytes, atomic_write_text
 from harness.groups import headline_matrix
@@ -215,20 +216,30 @@ def _group_matrix(long: pd.DataFrame, column: str) -> pd.DataFrame:
 
 
 def _space_section(run: tables.Run, t: dict) -> list[Section]:
-    """"SOTIF over the scenario space" (``harness.report_space``), when the run has its results."""
+    """"SOTIF over the scenario space" (``harness.report_space``), when the run has its results; the lead table
+    opens with the boundary rows (``harness.report_bounds``) when the run searched boundaries."""
     if "sotif_instances" not in t:
         return []
-    matrix = report_space.rate_matrix(t.get("sotif_pass_rates", pd.DataFrame()), t.get("sotif_phantoms"))
+    rates = report_space.rate_matrix(t.get("sotif_pass_rates", pd.DataFrame()), t.get("sotif_phantoms"))
+    bounds = report_bounds.lead_rows(run.boundaries)
+    matrix = report_bounds.with_rows(bounds, rates)
     answer = [Section("sotif_answer", "Where each detector stops finding the slow car in time",
-                      report_space.answer_intro(t), [("", matrix, 2)], ["sotif_margins"], lead=True)] \
-        if not matrix.empty else []
+                      report_space.answer_intro(t, bounds=not bounds.empty), [("", matrix, 2)], ["sotif_margins"],
+                      lead=True)] if not matrix.empty else []
     return answer + [Section("sotif_space", "SOTIF over the scenario space", report_space.section_intro(run.summary, t),
-                             [("Model pairs whose verdicts differ (exact McNemar, p < 0.05)",
-                               _apart(t.get("sotif_pairs", pd.DataFrame())), 3),
-                              ("Triggering conditions: the swept condition bins with the lowest pass rate",
-                               t.get("triggering_conditions", pd.DataFrame()), 2),
-                              ("Expected calibration error per weather class", t.get("calibration", pd.DataFrame()), 3)],
-                             [*_boundary_names(run, t), "reliability"])]
+                             _space_tables(run, t), [*_boundary_names(run, t), "reliability"])]
+
+
+def _space_tables(run: tables.Run, t: dict) -> list:
+    """The section's tables: the boundaries (when the run searched them), pairs, triggering conditions, ECE."""
+    bounds = [(report_bounds.caption(run.summary), report_bounds.table(run.boundaries), 2)] \
+        if not run.boundaries.empty else []
+    return [*bounds,
+            ("Model pairs whose verdicts differ (exact McNemar, p < 0.05)",
+             _apart(t.get("sotif_pairs", pd.DataFrame())), 3),
+            ("Triggering conditions: the swept condition bins with the lowest pass rate",
+             t.get("triggering_conditions", pd.DataFrame()), 2),
+            ("Expected calibration error per weather class", t.get("calibration", pd.DataFrame()), 3)]
 
 
 def _apart(pairs: pd.DataFrame) -> pd.DataFrame:
@@ -359,6 +370,7 @@ def _html_table(df: pd.DataFrame, decimals: int) -> Markup:
     cells = cells.map(lambda v: tables.display_cell(v, decimals))  # as in report.md
     html = cells.to_html(index=False, border=0, classes="tbl")  # in a box that scrolls when the table is wider
     html = html.replace("<td>FAIL", '<td class="fail">FAIL').replace("<td>pass", '<td class="pass">pass')
+    html = html.replace("<td>fails everywhere", '<td class="fail">fails everywhere')  # report_bounds.cell
     return Markup(f'<div class="tablebox">{html}</div>')
 
 

@@ -39,12 +39,13 @@ HOW_TO_READ = ("The maps show where each detector stops finding the slow vehicle
                f"{MIN_INSTANCES} preventable instances marked too few to judge.")
 
 
-ANSWER_HOW_TO_READ = ("Read down a model's column: a cell is the car-bodied instances in which it confirmed the slow "
-                      "vehicle in time to stop at <= 6 m/s^2, of those a reference perception could (preventable), "
-                      "with the rate and its 95 % interval over instances; where the passes fall (heavy rain, thick "
-                      "fog, dark paint) it stops being safe. Vans and trucks, outside the class the detectors learned, "
-                      "have their own row, as have the system verdict (latency included) and phantom in-path boxes. "
-                      f"A bin with fewer than {MIN_INSTANCES} preventable instances is too few to judge.")
+ANSWER_HOW_TO_READ = ("Read down a model's column: a rate cell is the car-bodied instances in which it confirmed "
+                      "the slow vehicle in time to stop at <= 6 m/s^2, of those a reference perception could "
+                      "(preventable), with the rate and its 95 % interval over instances; where the passes fall (heavy "
+                      "rain, thick fog, dark paint) it stops being safe. Vans and trucks, outside the class the "
+                      "detectors learned, have their own row, as have the system verdict (latency included) and "
+                      f"phantom in-path boxes. A bin with fewer than {MIN_INSTANCES} preventable instances is too few "
+                      "to judge.")
 
 
 def _instance_counts(inst: pd.DataFrame) -> str:
@@ -52,10 +53,15 @@ def _instance_counts(inst: pd.DataFrame) -> str:
     return ", ".join(f"{s}: {g['instance'].nunique()} instances" for s, g in inst.groupby("set", sort=False))
 
 
-def answer_intro(t: dict) -> str:
-    """The lead table's text: what a cell is and where the rest of the section is."""
+def answer_intro(t: dict, bounds: bool = False) -> str:
+    """The lead table's text: what a cell is and where the rest of the section is; with ``bounds``, what the
+    boundary rows are (``harness.report_bounds``)."""
     counts = _instance_counts(t["sotif_instances"])
-    return (f"Scenario instances ({counts}) passed per model: the slow vehicle confirmed (3 in-path hits within "
+    lead = ("The bounds rows come first: per reference scenario (ego and slow car km/h, body, paint) and axis, all "
+            "else held at the reference, where the model's perception verdict flips from pass to fail, failing above "
+            "the bracket in rain and road water and below it in fog visibility and reflectance (plan and tolerances "
+            "under the boundaries table below). ") if bounds else ""
+    return (f"{lead}Scenario instances ({counts}) passed per model: the slow vehicle confirmed (3 in-path hits within "
             "0.5 s) early enough that, after an automated system's 0.35 s reaction, stopping 2 m short of it needs at "
             "most 6 m/s^2 (UN R157), counted over the instances a reference perception passes. The SOTIF set is the "
             "21 presets with their instances pooled by precipitation (copies of the same drives under 21 skies); "

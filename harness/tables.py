@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness import rain, report_space, result_schema
+from harness import rain, report_bounds, report_space, result_schema
 from harness.cells import DIFFS, mark_capped, round_floats
 from harness.core.files import atomic_write_text
 from harness.core.kitti import KittiError, read_frames_meta
@@ -34,6 +34,7 @@ class Run:
     results: dict  # model name -> results/<name>.json
     meta: pd.DataFrame | None  # data/sotif/meta/frames.csv
     frame_stats: pd.DataFrame | None  # tables/data_stats.csv (per frame)
+    boundaries: pd.DataFrame  # tables/sotif_boundaries.csv (harness.run_boundaries); empty when the run has none
 
     @property
     def models(self) -> list[str]:
@@ -66,8 +67,9 @@ def _check_summary(path: Path, summary: dict) -> None:
 
 
 def load_run(run_dir) -> Run:
-    """Load results.json, every model's results file, the data meta and the per-frame data statistics; a JSON
-    value of the wrong type raises ``KittiError`` naming the file and the key (``harness.result_schema``)."""
+    """Load results.json, every model's results file, the data meta, the per-frame data statistics and the
+    boundaries table; a JSON value of the wrong type raises ``KittiError`` naming the file and the key
+    (``harness.result_schema``), a malformed boundaries table one naming the file (``report_bounds.read``)."""
     run_dir = Path(run_dir)
     path = run_dir / "results.json"
     summary = read_json_object(path)
@@ -84,7 +86,7 @@ def load_run(run_dir) -> Run:
     meta_path, stats_path = run_dir / "data" / "sotif" / "meta" / "frames.csv", run_dir / "tables" / "data_stats.csv"
     meta = read_frames_meta(meta_path) if meta_path.is_file() else None
     stats = read_frames_meta(stats_path) if stats_path.is_file() else None
-    return Run(run_dir, summary, results, meta, stats)
+    return Run(run_dir, summary, results, meta, stats, report_bounds.read(run_dir))
 
 
 # ----------------------------------------------------------------------------- paper tables

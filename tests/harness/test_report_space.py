@@ -1,11 +1,15 @@
 import json
+import re
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from harness import report, report_space
+from harness import report, report_bounds, report_space, run_boundaries
 from harness.core.files import atomic_write_text
+from harness.core.kitti import KittiError
 from harness.run_space import latency_ms, space_summary
 from tests.harness.test_report import make_run
 
@@ -119,3 +123,117 @@ def test_an_interval_over_few_instances_says_so():
     assert "spread of 2 drives, not a 95% interval" in few
     assert report_space.ci_method(rows("bootstrap over instances (6 instances, 200 resamples)")).endswith("resamples)")
     assert report_space.ci_method(rows("bootstrap over frames (200 resamples)")) == "bootstrap over frames (200 resamples)"
+
+
+# ----------------------------------------------------------------------------- boundaries (harness.report_bounds)
+WIDE = "bracketed wider than the tolerance (round limit)"
+BOUNDS = pd.DataFrame([  # tables/sotif_boundaries.csv with every status of harness.boundaries
+    ("alpha", "rain", "120-60_sedan_silver", 25.0, 50.0, "mm/h", WIDE, 3),
+    ("beta", "rain", "120-60_sedan_silver", 0.0, 100.0, "mm/h", "passes everywhere", 3),
+    ("alpha", "fog", "120-60_sedan_silver", 316.228, 1000.0, "m", WIDE, 4),
+    ("beta", "fog", "120-60_sedan_silver", 900.0, 1000.0, "m", "bracketed", 4),
+    ("alpha", "water", "120-60_suv_black", 0.0, 1.0, "share", "fails everywhere", 3),
+    ("beta", "water", "120-60_suv_black", 0.25, 0.3, "share",
+     "bracketed; not monotone (2 flips); seeds disagree at hi (1 of 3 pass)", 3),
+    ("alpha", "reflectance", "120-60_suv_black", 0.02, 0.8, "reflectance", "unpreventable (occlusion)", 2),
+    ("beta", "reflectance", "120-60_suv_black", 0.02, 0.8, "reflectance", "no verdict", 2),
+    ("alpha", "reflectance", "120-60_sedan_silver", 0.41, 0.8, "reflectance", WIDE, 3),
+], columns=["model", "axis", "scenario", "lo", "hi", "unit", "status", "n_probes"])
+BOUND_ROWS = [  # condition, alpha's cell, beta's cell
+    ("boundary: rain (mm/h), 120-60 sedan silver", "fails above 25-50 mm/h (bracket wider than ±5 mm/h)",
+     "passes everywhere in 0-100 mm/h"),
+    ("boundary: fog visibility (m), 120-60 sedan silver", "fails below 316-1,000 m (bracket wider than ±10 %)",
+     "fails below 900-1,000 m"),
+    ("boundary: road water (share of the road), 120-60 suv black", "fails everywhere in 0.00-1.00",
+     "fails above 0.25-0.30; not monotone (2 flips); seeds disagree at hi (1 of 3 pass)"),
+    ("boundary: slow car reflectance at 905 nm, 120-60 suv black", "unpreventable (occlusion)", "no verdict"),
+    ("boundary: slow car reflectance at 905 nm, 120-60 sedan silver", "fails below 0.41-0.80 (bracket wider than "
+     "±0.05)", None),
+]
+
+
+def _write_bounds(root, df=BOUNDS):
+    atomic_write_text(root / run_boundaries.TABLE, df.to_csv(index=False, lineterminator="\n"))
+
+
+def test_boundary_cells_say_where_each_model_fails(tmp_path):
+    _write_bounds(tmp_path)
+    bounds = report_bounds.read(tmp_path)
+    pd.testing.assert_frame_equal(bounds, BOUNDS)
+    rows = report_bounds.lead_rows(bounds)
+    assert list(rows.columns) == ["set", "condition", "alpha", "beta"] and set(rows["set"]) == {"bounds"}
+    assert [(r.condition, r.alpha, None if pd.isna(r.beta) else r.beta) for r in rows.itertuples()] == BOUND_ROWS
+    shown = report_bounds.table(bounds)
+    assert list(shown["lo"]) == ["25", "0", "316", "900", "0.00", "0.25", "0.02", "0.02", "0.41"]
+    assert list(shown["hi"]) == ["50", "100", "1,000", "1,000", "1.00", "0.30", "0.80", "0.80", "0.80"]
+
+
+def test_the_boundaries_caption_says_the_plan_and_the_tolerances():
+    text = report_bounds.caption({"config": {"bounds": "default"}})
+    assert 'plan "default": per reference scenario and axis its two ends, then the midpoint of each bracket wider ' \
+           "than the tolerance for at most 1 round, noise seed 0" in text
+    assert "±5 mm/h rain, ±10 % fog visibility, ±0.05 road water, ±0.05 reflectance" in text
+    assert "3 values, ends included, then the midpoint of each bracket wider than the tolerance until all are " \
+           "within it, noise seed 0, the final brackets again with seeds 1, 2" in report_bounds.caption(
+               {"config": {"bounds": "tolerance"}})
+    assert "(plan not recorded)" in report_bounds.caption({})
+
+
+@pytest.mark.parametrize("content", ["", "model,axis,scenario,lo,hi,unit,status,n_probes\n"])
+def test_an_empty_boundaries_table_adds_nothing(tmp_path, content):
+    (tmp_path / "tables").mkdir()
+    (tmp_path / run_boundaries.TABLE).write_text(content)
+    assert report_bounds.read(tmp_path).empty and report_bounds.read(tmp_path / "none").empty
+    matrix = pd.DataFrame({"set": ["sotif"], "condition": ["car-bodied: all"], "alpha": ["1/2"],
+                           "unpreventable": ["0"]})
+    assert report_bounds.with_rows(report_bounds.lead_rows(report_bounds.read(tmp_path)), matrix) is matrix
+
+
+@pytest.mark.parametrize("content,message", [
+    ('model,axis\n"x,1\n', "not a readable CSV table"),
+    ("model,axis,lo\na,rain,1\n", "no scenario, hi, unit, status, n_probes columns"),
+    ("model,axis,scenario,lo,hi,unit,status,n_probes\na,rain,s,1,x,mm/h,bracketed,3\n", "hi is not a number ('x')"),
+    ("model,axis,scenario,lo,hi,unit,status,n_probes\na,rain,s,1,2,mm/h,,3\n", "empty status"),
+])
+def test_a_malformed_boundaries_table_names_the_file(tmp_path, content, message):
+    (tmp_path / "tables").mkdir()
+    (tmp_path / run_boundaries.TABLE).write_text(content)
+    path = re.escape(str(tmp_path / run_boundaries.TABLE))
+    with pytest.raises(KittiError, match=f"{path}(:2)?: {re.escape(message)}"):
+        report_bounds.read(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def bounded_run(space_run, tmp_path_factory):
+    """The scenario-space run with a boundaries table and the default plan in its config, rendered."""
+    root = Path(shutil.copytree(space_run[0], tmp_path_factory.mktemp("bounded") / "run"))
+    _write_bounds(root)
+    doc = json.loads((root / "results.json").read_text())
+    atomic_write_text(root / "results.json", json.dumps({**doc, "config": {"bounds": "default"}}))
+    report.render(root)
+    return root
+
+
+def test_boundary_rows_lead_the_answer_and_the_table_sits_in_the_space_section(bounded_run):
+    root = bounded_run
+    md = (root / "report.md").read_text()
+    lead = md[md.index("## Where each detector stops finding the slow car in time"):md.index("## Models at a glance")]
+    assert "The bounds rows come first" in lead
+    body = [line for line in lead.splitlines() if line.startswith("| ")][1:]  # after the header
+    assert body[:len(BOUND_ROWS)] == [f"| bounds | {c} | {a} | {b or '–'} | – |" for c, a, b in BOUND_ROWS]
+    assert body[len(BOUND_ROWS)].startswith("| sotif | car-bodied: all |")
+    space = md[md.index("## SOTIF over the scenario space"):]
+    assert space.index('### Boundaries (plan "default"') < space.index("### Model pairs whose verdicts differ")
+    assert "| alpha | fog | 120-60_sedan_silver | 316 | 1,000 | m | bracketed wider than the tolerance (round " \
+           "limit) | 4 |" in space
+    html = (root / "index.html").read_text()
+    assert '<td class="fail">fails everywhere in 0.00-1.00</td>' in html
+    assert '<td class="pass">passes everywhere in 0-100 mm/h</td>' in html
+    assert pd.read_csv(root / run_boundaries.TABLE).equals(BOUNDS)  # the run's file is read, never rewritten
+
+
+def test_a_run_without_boundaries_renders_as_before(space_run):
+    md = (space_run[0] / "report.md").read_text()
+    lead = md[md.index("## Where each detector stops finding the slow car in time"):md.index("## Models at a glance")]
+    assert "| bounds |" not in md and "### Boundaries" not in md and "bounds rows" not in md
+    assert [line for line in lead.splitlines() if line.startswith("| ")][1].startswith("| sotif | car-bodied: all |")
