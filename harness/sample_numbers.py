@@ -203,6 +203,21 @@ def _axes_words(sweep: pd.DataFrame) -> str:
     return ", ".join(axes[:-1]) + f" and {axes[-1]}" if len(axes) > 1 else "".join(axes)
 
 
+def boundaries(t: SampleTables) -> dict:
+    """Each model's boundary per reference scenario and axis (``harness.report_bounds``'s words), and the plan's
+    probe count."""
+    from harness import report_bounds
+    bounds = t("sotif_boundaries", ["model", "axis", "scenario", "lo", "hi", "unit", "status", "n_probes"])
+    if bounds.empty:
+        raise MissingTable(t.folder / "sotif_boundaries.csv", "no boundary rows")
+    rows = report_bounds.lead_rows(bounds).drop(columns="set").fillna("–")
+    rows = rows.rename(columns={**{m: _label(m) for m in rows.columns}, "condition": "axis, reference scenario"})
+    rows["axis, reference scenario"] = rows["axis, reference scenario"].str.removeprefix("boundary: ")
+    first = bounds[bounds["model"] == bounds["model"].iloc[0]]
+    return {"table": _table(rows, set()), "scenarios": len(first["scenario"].unique()),
+            "axes": len(first["axis"].unique()), "probes": int(first["n_probes"].sum())}
+
+
 # ----------------------------------------------------------------------------- docs/results.md
 def _vehicle_row(row) -> str:
     """"NIR-black SUV, reflectance 0.60" of an instance row."""

@@ -71,6 +71,9 @@ def tiny_tables(folder):
         .to_csv(folder / "sotif_pass_rates.csv", index=False)
     pd.DataFrame([{"model": m, "set": s, "weather": "ClearNoon", "hours": 0.005, "n_false": 1 if m == "pointpillars" else 0}
                   for m in models for s in ("sotif", "sweep")]).to_csv(folder / "sotif_phantoms.csv", index=False)
+    pd.DataFrame([{"model": m, "axis": "rain", "scenario": "120-60_sedan_silver", "lo": 25.0, "hi": 50.0, "unit": "mm/h",
+                   "status": "bracketed" if m == "pointpillars" else "passes everywhere", "n_probes": 3}
+                  for m in models]).to_csv(folder / "sotif_boundaries.csv", index=False)
     return folder
 
 
@@ -117,6 +120,9 @@ def test_tiny_tables_give_the_known_readme_rows(tmp_path):
     assert ("of the 3 sweep instances (one of rain, fog visibility and road water moved, the scenario drawn), the 1 "
             "car-bodied ones (of 2) a reference perception could pass") in words
     assert "Vans, trucks: the 1 sweep instances whose slow vehicle is outside the Car class" in words
+    bounds = render_blocks(tiny_tables(tmp_path / "again"))["boundaries"]
+    assert "| rain (mm/h), 120-60 sedan silver | fails above 25-50 mm/h | passes everywhere in 25-50 mm/h |" in bounds
+    assert "each of 1 weather and paint axes moved alone on 1 reference scenarios (3 probes" in " ".join(bounds.split())
 
 
 def test_tiny_tables_give_the_known_results_blocks(tmp_path):
