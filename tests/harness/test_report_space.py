@@ -169,9 +169,11 @@ def test_boundary_cells_say_where_each_model_fails(tmp_path):
 
 
 def test_the_boundaries_caption_says_the_plan_and_the_tolerances():
-    text = report_bounds.caption({"config": {"bounds": "default"}})
+    text = report_bounds.caption({"config": {"bounds": "quick"}})
+    assert 'plan "quick": per reference scenario and axis its two ends, no refinement, noise seed 0' in text
     assert 'plan "default": per reference scenario and axis its two ends, then the midpoint of each bracket wider ' \
-           "than the tolerance for at most 1 round, noise seed 0" in text
+           "than the tolerance until all are within it, noise seed 0, the final brackets again with seeds 1, 2" in \
+           report_bounds.caption({"config": {"bounds": "default"}})
     assert "±5 mm/h rain, ±10 % fog visibility, ±0.05 road water, ±0.05 reflectance" in text
     assert "3 values, ends included, then the midpoint of each bracket wider than the tolerance until all are " \
            "within it, noise seed 0, the final brackets again with seeds 1, 2" in report_bounds.caption(
