@@ -121,11 +121,12 @@ PROFILES = {
                       warm_start=False),
 }
 
-# Minutes of each model's jobs in the sample run (docs/performance.md, its stage table's totals): the
-# job pool starts the longest first, so that the jobs end together, and the ETA a run prints scales
-# them by the share of each job still to do.
-_SAMPLE_MINUTES = {"mvx_net": 15, "point_rcnn": 33, "pointpillars": 15, "pv_rcnn": 15, "second": 15, "dv_second": 16,
-                   "parta2": 18}
+# Minutes of each model's job (train, export, predict the SOTIF, sweep and val sets, evaluate) on one core of
+# the sample's Intel Xeon, idle (docs/performance.md, "The default run's stages"): the job pool starts the
+# longest first, so that the jobs end together, and the ETA a run prints scales them by the share of each job
+# still to do.
+_SAMPLE_MINUTES = {"mvx_net": 48, "point_rcnn": 75, "pointpillars": 29, "pv_rcnn": 47, "second": 34, "dv_second": 41,
+                   "parta2": 47}
 
 
 # What a simulate stage records of its data set: every file the simulator writes (scans, images,
@@ -371,21 +372,21 @@ def _eta_seconds(order: list[str], minutes: dict[str, float], starts: dict[str, 
 
 def _work_left(cfg: RunConfig, run_dir: Path, name: str, recipe: ModelRecipe | None) -> float:
     """The share of a model's job still to do (0..1), from the epochs its checkpoint holds and the test
-    frames already predicted: training is most of a job (about 85 % in the sample run), prediction
+    frames already predicted: training is most of a job (about 60 % in the sample run), prediction
     most of the rest."""
     from models.zoo import CheckpointError, read_checkpoint
     test = run_dir / "data" / "sotif" / "ImageSets" / "test.txt"
     n_test = len(test.read_text().split()) if test.is_file() else 0
     predicted = len(list((run_dir / "predictions" / name).glob("[0-9]*.txt")))
     if recipe is None:  # an imported model: nothing to train
-        return 0.15 * max(0.0, 1 - predicted / n_test) if n_test else 0.15
+        return 0.4 * max(0.0, 1 - predicted / n_test) if n_test else 0.4
     epochs = cfg.epochs or recipe.schedule.epochs
     ckpt = checkpoint_of(run_dir, name)
     try:
         done = read_checkpoint(ckpt).get("epoch", 0) if ckpt.is_file() else 0
     except CheckpointError:
         done = 0  # the train stage says what is wrong with it
-    return 0.85 * max(0.0, 1 - done / epochs) + 0.15 * max(0.0, 1 - predicted / n_test) if n_test else 1.0
+    return 0.6 * max(0.0, 1 - done / epochs) + 0.4 * max(0.0, 1 - predicted / n_test) if n_test else 1.0
 
 
 def _gt_database(cfg: RunConfig, run_dir: Path, recipes: dict[str, ModelRecipe]) -> None:
