@@ -378,6 +378,7 @@ def _render(run: tables.Run, t: dict, figs: dict, md_links: dict) -> tuple[str, 
     """(report.md, index.html) text."""
     sections = [s for s in _sections(run, t) if any(not df.empty for _, df, _ in s.tables) or
                 any(f in figs for f in s.figures)]
+    sections.sort(key=lambda s: s.key != "sotif_answer")  # the SOTIF answer opens the report, above the rain table
     ctx = {"overview": _overview(run), "sections": sections, "captions": {k: v[0] for k, v in figs.items()},
            "models_table": report_pairs.with_draw_ranges(t["overview"], run.summary)}
     env_md = Environment(loader=FileSystemLoader(TEMPLATES), undefined=StrictUndefined, autoescape=False,
