@@ -10,13 +10,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from harness import report_bounds
 from harness.cells import num, span
 from harness.core.kitti import KittiError
 from harness.report import MODEL_LABELS
 
 AXES = {"rain": ("rain_mm_h", "rain", "mm/h", 1), "fog": ("fog_mor_m", "fog", "m", 0),  # sweep_axis ->
         "water": ("water", "water", "", 2)}  # (instance column, word, unit, decimals)
-AXIS_WORDS = {"rain": "rain", "fog": "fog visibility", "water": "road water"}
+AXIS_WORDS = report_bounds.NAMES  # an axis in prose
 PAINT = {"nir_black": "NIR-black"}
 BODY = {"suv": "SUV"}
 RAIN_GRADES = ("soft rain", "mid rain", "hard rain")
@@ -206,7 +207,6 @@ def _axes_words(sweep: pd.DataFrame) -> str:
 def boundaries(t: SampleTables) -> dict:
     """Each model's boundary per reference scenario and axis (``harness.report_bounds``'s words), and the plan's
     probe count."""
-    from harness import report_bounds
     bounds = t("sotif_boundaries", ["model", "axis", "scenario", "lo", "hi", "unit", "status", "n_probes"])
     if bounds.empty:
         raise MissingTable(t.folder / "sotif_boundaries.csv", "no boundary rows")
