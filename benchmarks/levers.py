@@ -1,66 +1,168 @@
 """Training levers measured by draws: each model trained with seeds 0..K-1 with and without a lever, and the
-spread of its val AP40 3D moderate (and, with ``--headline``, of the eager model's headline AP40 3D on a SOTIF
-set's test frames) over the draws. A lever is adopted when it narrows the spread at no loss of mean; a lever
-that saves time (``amp``) when its mean is not lower.
+spread of its val AP40 3D moderate (the run's 300-frame val set) and headline AP40 3D (all distances, IoU 0.7,
+the SOTIF set's test frames) over the draws. A lever is adopted when it narrows the spread at no loss of mean; a
+lever that saves time (``amp``) when its mean is not lower.
 
-    python benchmarks/levers.py --data RUN/data/train [--headline RUN/data/sotif] [--models second,pointpillars]
-        [--levers ema,amp] [--seeds 2] [--out /tmp/levers]
+    python benchmarks/levers.py --run DIR [--models second,pointpillars] [--levers ema,amp] [--seeds 2] [--jobs 2]
+
+``DIR`` (outside the checkout) holds the default run's training, val and SOTIF sets, simulated there on first use
+with the run's seeds and keys (``harness.run``: the sample's bytes), one folder per training
+(``levers/<model>-<lever>-seed<k>/checkpoint.pt``) and one result file per training (``levers/<...>.json``): an
+interrupted benchmark resumes every training and skips every finished one.
 
 Levers: ``ema`` (Schedule.ema = 0.999: the exponential moving average of the weights, evaluated and exported);
 ``amp`` (Schedule.amp = "bf16": each step's forward pass and loss under bfloat16 autocast, ``harness.amp``; only on
-a CPU with native bf16, refused elsewhere).
-Each training is ``harness.train.train`` on the compact profile (the default run's), one thread, its checkpoint
-under ``--out/<model>-<lever>-seed<k>`` (an interrupted benchmark resumes every training). Prints a Markdown
-table: model, lever, draws, val mean / min / max, headline mean / min / max, training seconds per draw.
+a CPU with native bf16, refused elsewhere); ``scenes`` (``SCENES`` training scenes, the default run's generator and
+seed, at the same number of steps: the epochs divided by the ratio of the sets' training frames, rounded; a
+schedule whose epochs do not divide is refused). The weight average does not change a training's steps (the network's
+own weights of a training with it equal, bit for bit, those of one without: ``tests/harness/test_train.py``), so
+the ``ema`` training gives both rows of a draw: the average and the network's own weights, ``none``. Without
+``ema`` among the levers, ``none`` is a training of its own.
+
+Each training is ``harness.train.train`` on the compact profile (the default run's), one thread; ``--jobs``
+trainings at once. Prints (and writes to ``DIR/levers/table.md``) a Markdown table: model, lever, draws, val mean /
+min / max, headline mean / min / max, training seconds per draw, and each lever's paired difference to ``none``
+(mean over seeds of lever minus none, and its min / max).
 """
 from __future__ import annotations
 
 import argparse
+import json
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from harness.train import train, validation_ap
-from models import zoo
-
-LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}}
+LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}, "scenes": {}}
+SCENES = 1800  # the scenes lever's training set: 6x the default run's 300, so that 30 and 12 epochs become 5 and 2
 
 
-def draw(model: str, lever: str, seed: int, data: Path, out: Path, headline: Path | None, profile: str) -> dict:
+def simulate(run_dir: Path) -> None:
+    """The default run's training set (with its 45-frame val split), val set and SOTIF set under ``run_dir``."""
+    from harness import run, valset
+    from harness.stages import Stages
+    cfg = run.PROFILES["default"]
+    stages = Stages(run_dir, progress=False)
+    run.simulate_set(stages, cfg, run_dir / "data", "train")
+    valset.simulate(stages, cfg, run_dir, run.DATA_PARTS)
+    run.simulate_set(stages, cfg, run_dir / "data", "sotif")
+
+
+def scenes_set(run_dir: Path) -> Path:
+    """The scenes lever's training set, ``SCENES`` scenes of the training generator with the run's seed."""
+    from harness import run
+    from harness.stages import Stages
+    cfg = replace(run.PROFILES["default"], train_frames=SCENES)
+    stages = Stages(run_dir / "scenes", progress=False)
+    run.simulate_set(stages, cfg, run_dir / "scenes" / "data", "train")
+    return run_dir / "scenes" / "data" / "train"
+
+
+def same_steps(epochs: int, frames: int, more_frames: int) -> int:
+    """The epochs over ``more_frames`` training frames that take the steps of ``epochs`` over ``frames``."""
+    ratio = more_frames / frames
+    out = round(epochs / ratio)
+    if out < 1 or abs(out * ratio - epochs) > 0.02 * epochs:
+        raise ValueError(f"{epochs} epochs over {frames} frames do not divide into whole epochs over {more_frames}")
+    return out
+
+
+def _scores(net, run_dir: Path) -> dict:
+    from harness.train import validation_ap
+    return {"val": validation_ap(net, run_dir / "data" / "val")["3d_moderate"],
+            "headline": validation_ap(net, run_dir / "data" / "sotif", split="test")["3d_all"]}
+
+
+def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compact") -> dict:
+    """Train (or resume) one draw and score it; ``{lever: scores}``, with ``none`` beside ``ema`` (the same
+    training's own weights). Written to ``levers/<model>-<lever>-seed<seed>.json`` and read from there when done."""
+    import torch
+
+    from harness.core.files import atomic_write_text
+    from harness.train import train
+    from models import zoo
+    torch.set_num_threads(1)
+    name = f"{model}-{lever}-seed{seed}"
+    done = run_dir / "levers" / f"{name}.json"
+    if done.is_file():
+        return json.loads(done.read_text())
     recipe = zoo.resolve(model, profile)
     recipe = replace(recipe, schedule=replace(recipe.schedule, **LEVERS[lever]))
-    ckpt = train(recipe, data, out / f"{model}-{lever}-seed{seed}", seed=seed, progress=False)
+    data, epochs = run_dir / "data" / "train", None
+    if lever == "scenes":
+        from harness.core.kitti import read_image_set
+        data = scenes_set(run_dir)
+        n_train = [len(read_image_set(d / "ImageSets" / "train.txt")) for d in (run_dir / "data" / "train", data)]
+        epochs = same_steps(recipe.schedule.epochs, *n_train)
+    ckpt = train(recipe, data, run_dir / "levers" / name, epochs=epochs, seed=seed, progress=False)
     state = zoo.read_checkpoint(ckpt)
-    row = {"val": state["val_ap"]["3d_moderate"], "seconds": state["train_seconds"]}
-    if headline is not None:
-        net, _ = zoo.load_checkpoint(ckpt)
-        row["headline"] = validation_ap(net, headline, split="test")["3d_all"]
-    return row
+    net, _ = zoo.load_checkpoint(ckpt)
+    rows = {lever: {**_scores(net, run_dir), "seconds": state["train_seconds"]}}
+    if lever == "ema":
+        net.load_state_dict(state["train_state_dict"])
+        rows["none"] = {**_scores(net, run_dir), "seconds": state["train_seconds"]}
+    out = {"model": model, "seed": seed, "cpu": torch.cpu.get_capabilities().get("cpu_name"), "rows": rows}
+    atomic_write_text(done, json.dumps(out, indent=1))
+    return out
+
+
+def table(results: list[dict], levers: list[str]) -> str:
+    """The Markdown table of ``results`` (``draw``'s outputs): per model and lever the draws' spread, and each
+    lever's paired difference to ``none``."""
+    lines = ["| model | lever | draws | val mean | val min | val max | headline mean | headline min | headline max "
+             "| train s / draw | val lever - none: mean (min, max) | headline lever - none: mean (min, max) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for model in dict.fromkeys(r["model"] for r in results):
+        by_seed: dict[str, dict[int, dict]] = {}
+        for r in results:
+            if r["model"] == model:
+                for lever, row in r["rows"].items():
+                    by_seed.setdefault(lever, {})[r["seed"]] = row
+        for lever in ["none", *levers]:
+            rows = by_seed.get(lever, {})
+            if not rows:
+                continue
+            val = np.array([v["val"] for v in rows.values()])
+            head = np.array([v["headline"] for v in rows.values()])
+            cells = [model, lever, str(len(rows)), *(f"{x:.2f}" for x in (val.mean(), val.min(), val.max())),
+                     *(f"{x:.2f}" for x in (head.mean(), head.min(), head.max())),
+                     f"{np.mean([v['seconds'] for v in rows.values()]):.0f}"]
+            for key in ("val", "headline"):
+                seeds = sorted(set(rows) & set(by_seed.get("none", {}))) if lever != "none" else []
+                d = np.array([rows[s][key] - by_seed["none"][s][key] for s in seeds])
+                cells.append(f"{d.mean():+.2f} ({d.min():+.2f}, {d.max():+.2f})" if len(d) else "")
+            lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--data", type=Path, required=True, help="a training set with a val split (a run's data/train)")
-    p.add_argument("--headline", type=Path, help="a SOTIF set whose test frames give the headline AP (optional)")
+    p.add_argument("--run", type=Path, required=True, help="the benchmark's folder (data and trainings)")
     p.add_argument("--models", default="second,pointpillars")
     p.add_argument("--levers", default="ema", help=f"comma-separated, of {', '.join(l for l in LEVERS if l != 'none')}")
     p.add_argument("--seeds", type=int, default=2)
+    p.add_argument("--jobs", type=int, default=2, help="trainings at once, one thread each (default 2)")
     p.add_argument("--profile", default="compact")
-    p.add_argument("--out", type=Path, default=Path("/tmp/levers"))
     a = p.parse_args(argv)
-    torch.set_num_threads(1)
-    print("| model | lever | draws | val mean | val min | val max | headline mean | headline min | headline max "
-          "| train s / draw |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
-    for model in a.models.split(","):
-        for lever in ["none", *a.levers.split(",")]:
-            rows = [draw(model, lever, s, a.data, a.out, a.headline, a.profile) for s in range(a.seeds)]
-            val = np.array([r["val"] for r in rows])
-            head = np.array([r.get("headline", np.nan) for r in rows])
-            print(f"| {model} | {lever} | {len(rows)} | {val.mean():.2f} | {val.min():.2f} | {val.max():.2f} | "
-                  f"{head.mean():.2f} | {head.min():.2f} | {head.max():.2f} | "
-                  f"{np.mean([r['seconds'] for r in rows]):.0f} |", flush=True)
+    levers = a.levers.split(",")
+    unknown = sorted(set(levers) - set(LEVERS) | ({"none"} & set(levers)))
+    if unknown:
+        p.error(f"unknown lever {', '.join(unknown)}; expected of {', '.join(l for l in LEVERS if l != 'none')}")
+    simulate(a.run)
+    if "scenes" in levers:
+        scenes_set(a.run)
+    trained = levers if "ema" in levers else ["none", *levers]
+    jobs = [(m, lever, s, a.run, a.profile) for s in range(a.seeds) for m in a.models.split(",") for lever in trained]
+    with ProcessPoolExecutor(a.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        results = list(pool.map(draw, *zip(*jobs)))
+    text = table(results, levers)
+    cpus = sorted({r["cpu"] or "unknown CPU" for r in results})
+    text = f"CPU: {', '.join(cpus)}\n\n" + text
+    from harness.core.files import atomic_write_text
+    atomic_write_text(a.run / "levers" / "table.md", text)
+    print(text, end="")
     return 0
 
 

@@ -141,7 +141,7 @@ DATA_PARTS = ("training/velodyne", "training/image_2", "training/calib", "traini
 SIM_SEED_OFFSET = {"sotif": 0, "train": 1000, "sweep": 2000}  # each data set's simulation seed: run seed + offset
 
 
-def _simulate(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
+def simulate_set(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
     """Simulate (or resume) a data set; returns the hash of its ``meta/dataset.json``, which lists the
     SHA-256 of every frame's files: the stages that read the data set key on it. A changed, truncated or
     missing file of the set is removed and the simulator makes its frame again (the same bytes: it seeds
@@ -489,9 +489,9 @@ def run(profile: str = "default", models=None, out=None, progress: bool = True, 
                                                                "code": code}, indent=1))
         stages = Stages(run_dir, progress)
         t0 = time.perf_counter()
-        train_hash = _simulate(stages, cfg, run_dir / "data", "train") if trained else None
-        sotif_hash = _simulate(stages, cfg, run_dir / "data", "sotif")
-        sweep_hash = _simulate(stages, cfg, run_dir / "data", "sweep") if cfg.sweep_instances else None
+        train_hash = simulate_set(stages, cfg, run_dir / "data", "train") if trained else None
+        sotif_hash = simulate_set(stages, cfg, run_dir / "data", "sotif")
+        sweep_hash = simulate_set(stages, cfg, run_dir / "data", "sweep") if cfg.sweep_instances else None
         valset.simulate(stages, cfg, run_dir, DATA_PARTS)
         data_identity.write_data_sets(run_dir)
         for line in data_identity.compare(run_dir) if progress else ():

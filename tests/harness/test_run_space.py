@@ -38,8 +38,8 @@ def test_the_sweep_set_is_simulated_with_its_instances_and_keyed_by_them(tmp_pat
     monkeypatch.setattr(simulator, "generate", fake_generate(calls))
     cfg = replace(TINY, seed=4, sotif_instances=2, sweep_instances=3)
     stages = Stages(tmp_path, progress=False)
-    run_mod._simulate(stages, cfg, tmp_path / "data", "sweep")
-    run_mod._simulate(stages, cfg, tmp_path / "data", "sotif")
+    run_mod.simulate_set(stages, cfg, tmp_path / "data", "sweep")
+    run_mod.simulate_set(stages, cfg, tmp_path / "data", "sotif")
     sweep, sotif = calls
     assert sweep["preset"] == "sweep" and sweep["instances"] == 3 and sweep["frames"] is None and sweep["seed"] == 2004
     # an instance set is not capped by frames; with the run's own val set it is all test (val_share 0)
@@ -48,7 +48,7 @@ def test_the_sweep_set_is_simulated_with_its_instances_and_keyed_by_them(tmp_pat
     key = {"preset": "sweep", "frames": None, "seed": 2004, "lidar": "physics", "generator": GENERATOR_VERSION,
            "instances": 3, **({"val_share": 0.0} if cfg.val_frames else {})}
     assert stages.record("simulate_sweep")["key"] == config_hash(key)
-    run_mod._simulate(stages, replace(cfg, sweep_instances=4), tmp_path / "data", "sweep")
+    run_mod.simulate_set(stages, replace(cfg, sweep_instances=4), tmp_path / "data", "sweep")
     assert len(calls) == 3 and calls[-1]["instances"] == 4  # another instance count simulates again
 
 
@@ -56,7 +56,7 @@ def test_the_studys_set_keeps_its_key_and_call(tmp_path, monkeypatch):
     calls = []
     monkeypatch.setattr(simulator, "generate", fake_generate(calls))
     stages = Stages(tmp_path, progress=False)
-    run_mod._simulate(stages, TINY, tmp_path / "data", "sotif")
+    run_mod.simulate_set(stages, TINY, tmp_path / "data", "sotif")
     assert "instances" not in calls[0]  # a simulator without instances is called as it always was
     key = {"preset": "sotif", "frames": 21, "seed": 0, "lidar": "physics", "generator": GENERATOR_VERSION}
     assert stages.record("simulate_sotif")["key"] == config_hash(key)
