@@ -265,13 +265,13 @@ def test_wall_span_of_overlapping_stages():
 
 def test_a_changed_lidar_model_simulates_the_run_data_again(tmp_path):
     """The run's data folder is its own: a changed simulate key replaces the data set there."""
-    from harness.run import _simulate
+    from harness.run import simulate_set
     from harness.stages import Stages
     cfg = replace(TINY, train_frames=1)
     stages = Stages(tmp_path, progress=False)
-    physics = _simulate(stages, cfg, tmp_path / "data", "train")
-    assert _simulate(stages, cfg, tmp_path / "data", "train") == physics  # current: skipped
-    carla = _simulate(stages, replace(cfg, lidar_model="carla"), tmp_path / "data", "train")
+    physics = simulate_set(stages, cfg, tmp_path / "data", "train")
+    assert simulate_set(stages, cfg, tmp_path / "data", "train") == physics  # current: skipped
+    carla = simulate_set(stages, replace(cfg, lidar_model="carla"), tmp_path / "data", "train")
     meta = json.loads((tmp_path / "data" / "train" / "meta" / "dataset.json").read_text())
     assert carla != physics and meta["config"]["lidar"]["model"] == "carla"
 
