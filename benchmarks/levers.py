@@ -14,7 +14,8 @@ Levers: ``ema`` (Schedule.ema = 0.999: the exponential moving average of the wei
 ``amp`` (Schedule.amp = "bf16": each step's forward pass and loss under bfloat16 autocast, ``harness.amp``; only on
 a CPU with native bf16, refused elsewhere); ``scenes`` (``SCENES`` training scenes, the default run's generator and
 seed, at the same number of steps: the epochs divided by the ratio of the sets' training frames, rounded; a
-schedule whose epochs do not divide is refused). The weight average does not change a training's steps (the network's
+schedule whose epochs do not divide is refused); ``weather`` (the default run's training scenes under the 21 weather
+presets in turn, in place of the six dry ones: rain, wet roads and night in training; the same steps). The weight average does not change a training's steps (the network's
 own weights of a training with it equal, bit for bit, those of one without: ``tests/harness/test_train.py``), so
 the ``ema`` training gives both rows of a draw: the average and the network's own weights, ``none``. Without
 ``ema`` among the levers, ``none`` is a training of its own.
@@ -35,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}, "scenes": {}}
+LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}, "scenes": {}, "weather": {}}
 SCENES = 1800  # the scenes lever's training set: 6x the default run's 300, so that 30 and 12 epochs become 5 and 2
 
 
@@ -60,6 +61,26 @@ def scenes_set(run_dir: Path) -> Path:
     return run_dir / "scenes" / "data" / "train"
 
 
+def weather_set(run_dir: Path) -> Path:
+    """The weather lever's training set: the default run's training scenes (generator, seed, count) with the 21
+    weather presets in turn (scene i under preset i mod 21) in place of the six dry ones."""
+    from harness import run
+    from harness.stages import Stages
+    from simulator import generate
+    from simulator.dataset import GENERATOR_VERSION
+    from simulator.weather import WEATHER_PRESETS
+    cfg = run.PROFILES["default"]
+    stages = Stages(run_dir / "weather", progress=False)
+    out, seed = run_dir / "weather" / "data" / "train", cfg.seed + run.SIM_SEED_OFFSET["train"]
+    key = {"preset": "train", "frames": cfg.train_frames, "seed": seed, "lidar": cfg.lidar_model,
+           "generator": GENERATOR_VERSION, "weathers": list(WEATHER_PRESETS)}
+    stages.run("simulate_train", key, lambda: {"out": str(generate(
+        out, preset="train", frames=cfg.train_frames, weathers=list(WEATHER_PRESETS), seed=seed, workers=cfg.workers,
+        lidar_model=cfg.lidar_model, progress=False, force=True))},
+        outputs=[out / part for part in run.DATA_PARTS], by_stat=True)
+    return out
+
+
 def same_steps(epochs: int, frames: int, more_frames: int) -> int:
     """The epochs over ``more_frames`` training frames that take the steps of ``epochs`` over ``frames``."""
     ratio = more_frames / frames
@@ -70,9 +91,14 @@ def same_steps(epochs: int, frames: int, more_frames: int) -> int:
 
 
 def _scores(net, run_dir: Path) -> dict:
+    """val AP3D moderate, the headline AP3D and the headline of each precipitation class's SOTIF frames."""
+    from harness.core.kitti import read_frames_meta
     from harness.train import validation_ap
-    return {"val": validation_ap(net, run_dir / "data" / "val")["3d_moderate"],
-            "headline": validation_ap(net, run_dir / "data" / "sotif", split="test")["3d_all"]}
+    sotif = run_dir / "data" / "sotif"
+    meta = read_frames_meta(sotif / "meta" / "frames.csv")
+    head = validation_ap(net, sotif, split="test", groups=dict(zip(meta["frame_id"], meta["precipitation_class"])))
+    return {"val": validation_ap(net, run_dir / "data" / "val")["3d_moderate"], "headline": head["3d_all"],
+            "headline_by": head["3d_all_by"]}
 
 
 def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compact") -> dict:
@@ -87,7 +113,14 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
     name = f"{model}-{lever}-seed{seed}"
     done = run_dir / "levers" / f"{name}.json"
     if done.is_file():
-        return json.loads(done.read_text())
+        out = json.loads(done.read_text())
+        if lever == "ema" and "headline_by" not in out["rows"]["none"]:  # scored before the classes were
+            net, _ = zoo.load_checkpoint(run_dir / "levers" / name / "checkpoint.pt")
+            net.load_state_dict(zoo.read_checkpoint(run_dir / "levers" / name / "checkpoint.pt")["train_state_dict"])
+            out["rows"]["none"] = {**_scores(net, run_dir), "seconds": out["rows"]["none"]["seconds"],
+                                   "headline_before": out["rows"]["none"]["headline"]}
+            atomic_write_text(done, json.dumps(out, indent=1))
+        return out
     recipe = zoo.resolve(model, profile)
     recipe = replace(recipe, schedule=replace(recipe.schedule, **LEVERS[lever]))
     data, epochs = run_dir / "data" / "train", None
@@ -96,6 +129,8 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
         data = scenes_set(run_dir)
         n_train = [len(read_image_set(d / "ImageSets" / "train.txt")) for d in (run_dir / "data" / "train", data)]
         epochs = same_steps(recipe.schedule.epochs, *n_train)
+    elif lever == "weather":
+        data = weather_set(run_dir)
     ckpt = train(recipe, data, run_dir / "levers" / name, epochs=epochs, seed=seed, progress=False)
     state = zoo.read_checkpoint(ckpt)
     net, _ = zoo.load_checkpoint(ckpt)
@@ -137,6 +172,21 @@ def table(results: list[dict], levers: list[str]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def table_by_class(results: list[dict]) -> str:
+    """The headline AP3D of each draw on the SOTIF frames of each precipitation class (draws scored with it)."""
+    rows = sorted(((r["model"], lever, r["seed"], row["headline"], row["headline_by"]) for r in results
+                   for lever, row in r["rows"].items() if "headline_by" in row), key=lambda x: x[:3])
+    if not rows:
+        return ""
+    classes = sorted({c for *_, by in rows for c in by})
+    lines = ["| model | lever | seed | headline | " + " | ".join(f"headline {c}" for c in classes) + " |",
+             "|---|---|---:|---:|" + "---:|" * len(classes)]
+    for model, lever, seed, head, by in rows:
+        lines.append(f"| {model} | {lever} | {seed} | {head:.2f} | "
+                     + " | ".join(f"{by[c]:.2f}" if c in by else "" for c in classes) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--run", type=Path, required=True, help="the benchmark's folder (data and trainings)")
@@ -153,6 +203,8 @@ def main(argv=None) -> int:
     simulate(a.run)
     if "scenes" in levers:
         scenes_set(a.run)
+    if "weather" in levers:
+        weather_set(a.run)
     trained = levers if "ema" in levers else ["none", *levers]
     jobs = [(m, lever, s, a.run, a.profile) for s in range(a.seeds) for m in a.models.split(",") for lever in trained]
     with ProcessPoolExecutor(a.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
@@ -160,6 +212,8 @@ def main(argv=None) -> int:
     text = table(results, levers)
     cpus = sorted({r["cpu"] or "unknown CPU" for r in results})
     text = f"CPU: {', '.join(cpus)}\n\n" + text
+    by_class = table_by_class(results)
+    text += f"\nThe headline by precipitation class of the SOTIF frames:\n\n{by_class}" if by_class else ""
     from harness.core.files import atomic_write_text
     atomic_write_text(a.run / "levers" / "table.md", text)
     print(text, end="")

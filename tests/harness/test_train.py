@@ -388,3 +388,37 @@ def test_a_bf16_training_checkpoints_float32_weights(tmp_path):
     assert all(v.dtype == torch.float32 for v in state["state_dict"].values() if v.is_floating_point())
     assert all(v.dtype == torch.float32 for s in state["optimizer"]["state"].values() for v in s.values()
                if torch.is_tensor(v) and v.is_floating_point())
+
+
+class _GroundTruthNet(torch.nn.Module):
+    """Detects each frame's ground-truth boxes (found by the frame's points), shifted by a per-frame
+    offset along x: a detector whose AP differs from frame to frame."""
+
+    uses_camera = False
+
+    def __init__(self, ds, shifts):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.zeros(1))
+        self.by_points = {ds[i].points.tobytes(): (ds[i].gt_boxes, shifts[i]) for i in range(len(ds))}
+
+    def forward(self, points):
+        boxes, shift = self.by_points[points.numpy().tobytes()]
+        boxes = np.array(boxes, np.float32)
+        boxes[:, 0] += shift
+        return torch.as_tensor(boxes), torch.linspace(0.9, 0.5, len(boxes))
+
+
+def test_validation_ap_by_group_equals_the_ap_of_the_groups_frames_alone(tmp_path):
+    from harness.dataset import KittiDataset
+    from harness.train import validation_ap
+    data = write_synthetic_dataset(tmp_path / "data", frames=8, seed=3)
+    ds = KittiDataset(data, "train")
+    net = _GroundTruthNet(ds, shifts=[0.0, 0.0, 0.0, 0.9, 0.3, 0.6, 0.0, 1.5])
+    first = {f: "a" if i < 4 else "b" for i, f in enumerate(ds.frame_ids)}
+    out = validation_ap(net, data, split="train", groups=first)
+    alone = validation_ap(net, data, split="train", max_frames=4)["3d_all"]  # frames 0-3: group "a"
+    assert set(out["3d_all_by"]) == {"a", "b"}
+    assert out["3d_all_by"]["a"] == pytest.approx(alone, abs=1e-9)
+    assert all(0 < ap < 100 for ap in out["3d_all_by"].values()) and out["3d_all_by"]["a"] != out["3d_all_by"]["b"]
+    one = validation_ap(net, data, split="train", groups=dict.fromkeys(ds.frame_ids, "all"))
+    assert one["3d_all_by"] == {"all": pytest.approx(one["3d_all"], abs=1e-9)}
