@@ -2,6 +2,17 @@
 
 The static world's BVH is built once per process; the vehicles (a few thousand triangles)
 get their own small scene each frame, and a ray's first hit is the nearer of the two.
+
+Which triangle a ray hits is settled here, not by Embree, so that a seed gives the same bytes on every
+CPU: Embree's answer for a ray that passes within rounding of a triangle's edge depends on the CPU (its
+kernels and each vendor's reciprocal estimates). A ray's hit is defined as the nearest triangle it meets
+in float64 (Moller-Trumbore on the float32 triangles and ray, edges included; ties: the lower index),
+and Embree only proposes a candidate: it casts against the triangles grown by ``GROW_M`` in their planes,
+so a triangle the ray meets is one Embree meets by a margin far above its rounding, on every CPU, and no
+triangle met lies in front of the candidate's plane (``settle``). A ray that meets its candidate is
+settled among it and the triangles near the meeting point (a grid of ``CELL_M`` cells); a ray that
+passes beside it (within GROW_M of an edge) walks the grid from there and tests every triangle it
+crosses. Every decision is float64 arithmetic without fused multiply-adds, the same on every x86-64 CPU.
 """
 from __future__ import annotations
 
@@ -31,6 +42,11 @@ class Hits:
     actor: np.ndarray
 
 
+GROW_M = 1e-3  # metres each triangle grows by for Embree's cast: 10x Embree's rounding over 120 m of float32
+MAX_MOVE_M = 1.0  # and each corner by at most this (the world's and the vehicles' triangles: < 0.5 m)
+CELL_M = 2.0  # the grid of triangles a hit is settled among
+
+
 def _scene(triangles: np.ndarray) -> rtcs.EmbreeScene:
     scene = rtcs.EmbreeScene()
     TriangleMesh(scene, np.ascontiguousarray(triangles, dtype=np.float32))
@@ -43,16 +59,274 @@ def _run(scene: rtcs.EmbreeScene, origins: np.ndarray, dirs: np.ndarray, max_t: 
                      np.ascontiguousarray(dirs, dtype=np.float32), dists=max_t, output=1)
 
 
-def _exact_run(scene: rtcs.EmbreeScene, triangles: np.ndarray, origins32: np.ndarray, dirs32: np.ndarray,
-               max_t: float | np.ndarray = 1e37) -> dict:
-    """_run with the distance and the normal of each hit recomputed from its triangle (exact_hits).
+def grown(triangles: np.ndarray, by: float = GROW_M, most: float = MAX_MOVE_M) -> np.ndarray:
+    """(T, 3, 3) float32 triangles scaled about their centroids so that every edge moves out by at least
+    2 ``by`` metres in the triangle's plane (twice: float32's rounding of the grown corners), no corner by
+    more than ``most`` (a sliver is grown less; degenerate triangles unchanged)."""
+    tris = np.asarray(triangles, dtype=np.float64)
+    c = tris.mean(1, keepdims=True)
+    area2 = np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)  # 2 x area
+    edges = np.linalg.norm(tris[:, [1, 2, 0]] - tris, axis=2).max(1)
+    inset = area2 / (3.0 * np.maximum(edges, 1e-30))  # the centroid's distance to its nearest edge line
+    reach = np.linalg.norm(tris - c, axis=2).max(1)  # the centroid's distance to its farthest corner
+    scale = np.minimum(1.0 + 2.0 * by / np.maximum(inset, 1e-30), 1.0 + most / np.maximum(reach, 1e-30))
+    return (c + (tris - c) * np.where(area2 > 0, scale, 1.0)[:, None, None]).astype(np.float32)
 
-    Embree picks its kernels by instruction set (SSE, AVX2, AVX-512) and its tfar and Ng differ between
-    them in the last bits; only the triangle it hits is kept, so the same rays give the same bytes on
-    every CPU."""
-    res = _run(scene, origins32, dirs32, max_t)
-    res["tfar"], res["Ng"] = exact_hits(triangles, res["primID"], origins32, dirs32, res["tfar"])
-    return res
+
+@numba.njit(cache=True)
+def _grid(tris, cell, pad):
+    """Triangles by the (x, y) cells of ``cell`` metres their bounding boxes, grown by ``pad``, overlap:
+    (x0, y0, nx, ny, cell), CSR starts (nx * ny + 1,) and triangle indices (ascending within a cell)."""
+    n = tris.shape[0]
+    lo = np.empty((n, 2))
+    hi = np.empty((n, 2))
+    for k in range(n):
+        for a in range(2):
+            lo[k, a] = min(tris[k, 0, a], tris[k, 1, a], tris[k, 2, a]) - pad
+            hi[k, a] = max(tris[k, 0, a], tris[k, 1, a], tris[k, 2, a]) + pad
+    x0, y0 = lo[:, 0].min(), lo[:, 1].min()
+    nx = int((hi[:, 0].max() - x0) // cell) + 1
+    ny = int((hi[:, 1].max() - y0) // cell) + 1
+    counts = np.zeros(nx * ny + 1, np.int64)
+    for k in range(n):
+        for ix in range(int((lo[k, 0] - x0) // cell), int((hi[k, 0] - x0) // cell) + 1):
+            for iy in range(int((lo[k, 1] - y0) // cell), int((hi[k, 1] - y0) // cell) + 1):
+                counts[ix * ny + iy + 1] += 1
+    starts = np.cumsum(counts)
+    fill = starts[:-1].copy()
+    items = np.empty(starts[-1], np.int64)
+    for k in range(n):
+        for ix in range(int((lo[k, 0] - x0) // cell), int((hi[k, 0] - x0) // cell) + 1):
+            for iy in range(int((lo[k, 1] - y0) // cell), int((hi[k, 1] - y0) // cell) + 1):
+                items[fill[ix * ny + iy]] = k
+                fill[ix * ny + iy] += 1
+    return np.array([x0, y0, nx, ny, cell]), starts, items
+
+
+@numba.njit(cache=True)
+def _crowded(tris, bounds, starts, items, pad):
+    """(T,) bool: a triangle that comes within ``pad`` of one it shares no corner with (bounds that overlap,
+    and neither lies to one side of the other's plane or outside one of its edges by more than pad): one
+    that may cross it or touch it, so that a ray may meet both at one distance."""
+    out = np.zeros(tris.shape[0], np.bool_)
+    for c in range(starts.shape[0] - 1):
+        for j in range(starts[c], starts[c + 1]):
+            a = items[j]
+            for k in range(j + 1, starts[c + 1]):
+                b = items[k]
+                if out[a] and out[b]:
+                    continue
+                if (bounds[a, 1, 0] < bounds[b, 0, 0] or bounds[b, 1, 0] < bounds[a, 0, 0]
+                        or bounds[a, 1, 1] < bounds[b, 0, 1] or bounds[b, 1, 1] < bounds[a, 0, 1]
+                        or bounds[a, 1, 2] < bounds[b, 0, 2] or bounds[b, 1, 2] < bounds[a, 0, 2]):
+                    continue
+                shared = False
+                for u in range(3):
+                    for v in range(3):
+                        if (tris[a, u, 0] == tris[b, v, 0] and tris[a, u, 1] == tris[b, v, 1]
+                                and tris[a, u, 2] == tris[b, v, 2]):
+                            shared = True
+                if not shared and not _apart(tris, a, b, pad) and not _apart(tris, b, a, pad):
+                    out[a] = out[b] = True
+    return out
+
+
+@numba.njit(cache=True)
+def _apart(tris, a, b, pad):
+    """Triangle b lies more than ``pad`` to one side of triangle a's plane or outside one of a's edges."""
+    ax, ay, az = np.float64(tris[a, 0, 0]), np.float64(tris[a, 0, 1]), np.float64(tris[a, 0, 2])
+    e1x, e1y, e1z = np.float64(tris[a, 1, 0]) - ax, np.float64(tris[a, 1, 1]) - ay, np.float64(tris[a, 1, 2]) - az
+    e2x, e2y, e2z = np.float64(tris[a, 2, 0]) - ax, np.float64(tris[a, 2, 1]) - ay, np.float64(tris[a, 2, 2]) - az
+    nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+    if nn == 0.0:
+        return False
+    nx, ny, nz = nx / nn, ny / nn, nz / nn
+    lo, hi = np.inf, -np.inf
+    for v in range(3):
+        dist = ((np.float64(tris[b, v, 0]) - ax) * nx + (np.float64(tris[b, v, 1]) - ay) * ny
+                + (np.float64(tris[b, v, 2]) - az) * nz)
+        lo, hi = min(lo, dist), max(hi, dist)
+    if lo > pad or hi < -pad:
+        return True
+    for e in range(3):  # outward normal of edge e in a's plane: edge x n (a is counter-clockwise about n)
+        sx, sy, sz = np.float64(tris[a, e, 0]), np.float64(tris[a, e, 1]), np.float64(tris[a, e, 2])
+        f = (e + 1) % 3
+        ex, ey, ez = np.float64(tris[a, f, 0]) - sx, np.float64(tris[a, f, 1]) - sy, np.float64(tris[a, f, 2]) - sz
+        mx, my, mz = ey * nz - ez * ny, ez * nx - ex * nz, ex * ny - ey * nx
+        mm = np.sqrt(mx * mx + my * my + mz * mz)
+        if mm == 0.0:
+            continue
+        outside = np.inf
+        for v in range(3):
+            outside = min(outside, ((np.float64(tris[b, v, 0]) - sx) * mx + (np.float64(tris[b, v, 1]) - sy) * my
+                                    + (np.float64(tris[b, v, 2]) - sz) * mz) / mm)
+        if outside > pad:
+            return True
+    return False
+
+
+class Mesh:
+    """A triangle soup as the ray caster settles hits on it: the triangles, Embree's scene of them grown
+    by GROW_M, and the triangles near each (x, y) cell of CELL_M metres."""
+
+    def __init__(self, triangles: np.ndarray):
+        self.triangles = np.ascontiguousarray(triangles, dtype=np.float32)
+        self.embree = _scene(grown(self.triangles, GROW_M))
+        self.pad = 4.0 * GROW_M  # how near the point where the ray meets a candidate's plane others are sought
+        self.grid = _grid(self.triangles, CELL_M, self.pad)
+        t64 = self.triangles.astype(np.float64)
+        self.bounds = np.stack([t64.min(1) - self.pad, t64.max(1) + self.pad], 1)  # (T, 2, 3)
+        self.crowded = _crowded(self.triangles, self.bounds, *self.grid[1:], self.pad)
+
+    def first_hits(self, origins32: np.ndarray, dirs32: np.ndarray, max_t: float | np.ndarray = 1e37) -> dict:
+        """Settled first hits up to max_t (a number or per ray): primID (N,) (-1: none), tfar (N,) float32
+        and Ng (N, 3) float32 recomputed from the triangle (exact_hits; tfar stays max_t on a miss)."""
+        n = len(dirs32)
+        limit = np.broadcast_to(np.asarray(max_t, np.float64), (n,)).copy()
+        # Embree's limit a little beyond the exact one: the limit itself is applied in float64 (settle)
+        res = _run(self.embree, origins32, dirs32, (np.minimum(limit, 1e37) * (1 + 1e-5) + 1e-3).astype(np.float32))
+        prim = settle(self.triangles, self.bounds, self.crowded, *self.grid, self.pad, res["primID"].astype(np.int64),
+                      origins32, dirs32, limit)
+        tfar = np.where(prim >= 0, 0.0, np.minimum(limit, 1e37)).astype(np.float32)
+        tfar, ng = exact_hits(self.triangles, prim, origins32, dirs32, tfar)
+        return {"primID": prim, "tfar": tfar, "Ng": ng}
+
+
+@numba.njit(cache=True)
+def _meet(tris, k, o, d):
+    """The ray o + t d against triangle k in float64 (Moller-Trumbore): t, or nan when the ray misses the
+    triangle (a point on an edge meets it) or runs parallel to its plane; and t of the plane (nan: parallel)."""
+    ax, ay, az = np.float64(tris[k, 0, 0]), np.float64(tris[k, 0, 1]), np.float64(tris[k, 0, 2])
+    e1x, e1y, e1z = np.float64(tris[k, 1, 0]) - ax, np.float64(tris[k, 1, 1]) - ay, np.float64(tris[k, 1, 2]) - az
+    e2x, e2y, e2z = np.float64(tris[k, 2, 0]) - ax, np.float64(tris[k, 2, 1]) - ay, np.float64(tris[k, 2, 2]) - az
+    dx, dy, dz = np.float64(d[0]), np.float64(d[1]), np.float64(d[2])
+    px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
+    if det == 0.0:
+        return np.nan, np.nan
+    inv = 1.0 / det
+    sx, sy, sz = np.float64(o[0]) - ax, np.float64(o[1]) - ay, np.float64(o[2]) - az
+    u = (sx * px + sy * py + sz * pz) * inv
+    qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inv
+    t = (e2x * qx + e2y * qy + e2z * qz) * inv
+    if u < 0.0 or v < 0.0 or u + v > 1.0:
+        return np.nan, t
+    return t, t
+
+
+@numba.njit(cache=True)
+def _inside(tris, k, hx, hy, hz):
+    """How far the point (hx, hy, hz), on triangle k's plane, lies inside its nearest edge (metres;
+    negative outside): the least over the edges of (edge x (point - edge start)) . n / |edge| / |n|."""
+    nx_, ny_, nz_ = 0.0, 0.0, 0.0
+    ax, ay, az = np.float64(tris[k, 0, 0]), np.float64(tris[k, 0, 1]), np.float64(tris[k, 0, 2])
+    e1x, e1y, e1z = np.float64(tris[k, 1, 0]) - ax, np.float64(tris[k, 1, 1]) - ay, np.float64(tris[k, 1, 2]) - az
+    e2x, e2y, e2z = np.float64(tris[k, 2, 0]) - ax, np.float64(tris[k, 2, 1]) - ay, np.float64(tris[k, 2, 2]) - az
+    nx_, ny_, nz_ = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    nn = np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_)
+    if nn == 0.0:
+        return -np.inf
+    least = np.inf
+    for e in range(3):
+        sx, sy, sz = np.float64(tris[k, e, 0]), np.float64(tris[k, e, 1]), np.float64(tris[k, e, 2])
+        f = (e + 1) % 3
+        ex, ey, ez = np.float64(tris[k, f, 0]) - sx, np.float64(tris[k, f, 1]) - sy, np.float64(tris[k, f, 2]) - sz
+        px, py, pz = hx - sx, hy - sy, hz - sz
+        cx, cy, cz = ey * pz - ez * py, ez * px - ex * pz, ex * py - ey * px
+        length = np.sqrt(ex * ex + ey * ey + ez * ez)
+        if length == 0.0:
+            return -np.inf
+        least = min(least, (cx * nx_ + cy * ny_ + cz * nz_) / (length * nn))
+    return least
+
+
+@numba.njit(cache=True)
+def _cell_nearest(tris, bounds, starts, items, c, o, d, near, hx, hy, hz, limit, best, best_t):
+    """The nearest of ``best`` (at best_t) and the triangles of grid cell c that the ray meets at
+    0 < t <= limit (ties: the lower index); when ``near``, only triangles whose bounds hold (hx, hy, hz)."""
+    for j in range(starts[c], starts[c + 1]):
+        q = items[j]
+        if near and (hx < bounds[q, 0, 0] or hx > bounds[q, 1, 0] or hy < bounds[q, 0, 1]
+                     or hy > bounds[q, 1, 1] or hz < bounds[q, 0, 2] or hz > bounds[q, 1, 2]):
+            continue
+        tq = _meet(tris, q, o, d)[0]
+        if tq > 0.0 and tq <= limit and (tq < best_t or (tq == best_t and q < best)):
+            best, best_t = q, tq
+    return best, best_t
+
+
+@numba.njit(cache=True)
+def _walk(tris, bounds, box, starts, items, o, d, t0, limit):
+    """The nearest triangle the ray meets at 0 < t <= limit (-1: none), walking the grid cells the ray
+    crosses from t0 on (Amanatides & Woo's traversal in x, y) and testing every triangle in them."""
+    x0, y0, nx, ny, cell = box[0], box[1], int(box[2]), int(box[3]), box[4]
+    ox, oy, dx, dy = np.float64(o[0]), np.float64(o[1]), np.float64(d[0]), np.float64(d[1])
+    lo, hi = t0, min(limit, 1e30)
+    for a0, n_a, oa, da in ((x0, nx, ox, dx), (y0, ny, oy, dy)):  # clip to the grid's box
+        if da != 0.0:
+            ta, tb = (a0 - oa) / da, (a0 + n_a * cell - oa) / da
+            lo, hi = max(lo, min(ta, tb)), min(hi, max(ta, tb))
+        elif oa < a0 or oa > a0 + n_a * cell:
+            return -1
+    if lo > hi:
+        return -1
+    ix = min(max(int((ox + lo * dx - x0) // cell), 0), nx - 1)
+    iy = min(max(int((oy + lo * dy - y0) // cell), 0), ny - 1)
+    sx, sy = (1 if dx > 0 else -1), (1 if dy > 0 else -1)
+    next_x = (x0 + (ix + (1 if dx > 0 else 0)) * cell - ox) / dx if dx != 0.0 else np.inf
+    next_y = (y0 + (iy + (1 if dy > 0 else 0)) * cell - oy) / dy if dy != 0.0 else np.inf
+    step_x = cell / abs(dx) if dx != 0.0 else np.inf
+    step_y = cell / abs(dy) if dy != 0.0 else np.inf
+    best, best_t = -1, np.inf
+    while True:
+        best, best_t = _cell_nearest(tris, bounds, starts, items, ix * ny + iy, o, d, False, 0.0, 0.0, 0.0, limit,
+                                     best, best_t)
+        t_exit = min(next_x, next_y)
+        if best_t <= t_exit or t_exit > hi:  # a triangle met in this cell lies in it or in one walked
+            return best
+        if next_x < next_y:
+            ix, next_x = ix + sx, next_x + step_x
+        else:
+            iy, next_y = iy + sy, next_y + step_y
+        if not (0 <= ix < nx and 0 <= iy < ny):
+            return best
+
+
+@numba.njit(cache=True)
+def settle(tris, bounds, crowded, box, starts, items, pad, prim, origins, dirs, limit):
+    """Each ray's triangle (N,) (-1: none): the nearest the ray meets in float64 at 0 < t <= limit (ties: the
+    lower index), found from Embree's candidate ``prim`` on the grown triangles (-1: none, so none met).
+    When the ray meets the candidate, nothing grown lies in front of it (Embree would have returned that)
+    but a triangle met at the same distance within rounding: the triangles of the grid cell (``_grid``)
+    whose bounds (T, 2, 3, grown by ``pad``) hold the meeting point are tested too, unless the point lies
+    ``pad`` / 2 inside the candidate and no triangle but its neighbours comes near it (``crowded``: a
+    neighbour met at that distance would have to fold back over the candidate). When it passes beside
+    the candidate, the grid is walked from ``pad`` before the candidate's plane (``_walk``)."""
+    n = prim.shape[0]
+    out = np.full(n, -1, np.int32)
+    x0, y0, nx, ny, cell = box[0], box[1], int(box[2]), int(box[3]), box[4]
+    for i in range(n):
+        p = prim[i]
+        if p < 0:
+            continue  # nothing within GROW_M of the ray: a miss
+        met, t = _meet(tris, p, origins[i], dirs[i])
+        if met > 0.0 and met <= limit[i]:
+            hx = np.float64(origins[i, 0]) + met * np.float64(dirs[i, 0])
+            hy = np.float64(origins[i, 1]) + met * np.float64(dirs[i, 1])
+            hz = np.float64(origins[i, 2]) + met * np.float64(dirs[i, 2])
+            ix, iy = int((hx - x0) // cell), int((hy - y0) // cell)
+            out[i] = p
+            if not crowded[p] and _inside(tris, p, hx, hy, hz) >= 0.5 * pad:
+                continue
+            if 0 <= ix < nx and 0 <= iy < ny:
+                out[i] = _cell_nearest(tris, bounds, starts, items, ix * ny + iy, origins[i], dirs[i], True, hx, hy, hz,
+                                       limit[i], p, met)[0]
+        elif not (t > limit[i] + pad):
+            out[i] = _walk(tris, bounds, box, starts, items, origins[i], dirs[i],
+                           max(t - pad, 0.0) if t == t else 0.0, limit[i])
+    return out
 
 
 @numba.njit(cache=True)
@@ -70,14 +344,14 @@ def exact_hits(tris: np.ndarray, prim: np.ndarray, origins: np.ndarray, dirs: np
         p = prim[i]
         if p < 0:
             continue
-        ax, ay, az = float(tris[p, 0, 0]), float(tris[p, 0, 1]), float(tris[p, 0, 2])
-        e1x, e1y, e1z = float(tris[p, 1, 0]) - ax, float(tris[p, 1, 1]) - ay, float(tris[p, 1, 2]) - az
-        e2x, e2y, e2z = float(tris[p, 2, 0]) - ax, float(tris[p, 2, 1]) - ay, float(tris[p, 2, 2]) - az
+        ax, ay, az = np.float64(tris[p, 0, 0]), np.float64(tris[p, 0, 1]), np.float64(tris[p, 0, 2])
+        e1x, e1y, e1z = np.float64(tris[p, 1, 0]) - ax, np.float64(tris[p, 1, 1]) - ay, np.float64(tris[p, 1, 2]) - az
+        e2x, e2y, e2z = np.float64(tris[p, 2, 0]) - ax, np.float64(tris[p, 2, 1]) - ay, np.float64(tris[p, 2, 2]) - az
         nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
-        denom = float(dirs[i, 0]) * nx + float(dirs[i, 1]) * ny + float(dirs[i, 2]) * nz
+        denom = np.float64(dirs[i, 0]) * nx + np.float64(dirs[i, 1]) * ny + np.float64(dirs[i, 2]) * nz
         if denom != 0.0:
-            o = origins[i]
-            t_out[i] = ((ax - float(o[0])) * nx + (ay - float(o[1])) * ny + (az - float(o[2])) * nz) / denom
+            ox, oy, oz = np.float64(origins[i, 0]), np.float64(origins[i, 1]), np.float64(origins[i, 2])
+            t_out[i] = ((ax - ox) * nx + (ay - oy) * ny + (az - oz) * nz) / denom
         ng[i, 0], ng[i, 1], ng[i, 2] = nx, ny, nz
     return t_out, ng
 
@@ -153,7 +427,7 @@ def unit_normals_facing(ng: np.ndarray, dirs: np.ndarray) -> np.ndarray:
     """(N, 3) unit normals turned against the ray directions (zero where ng is zero)."""
     out = np.zeros((ng.shape[0], 3))
     for i in range(ng.shape[0]):
-        x, y, z = float(ng[i, 0]), float(ng[i, 1]), float(ng[i, 2])
+        x, y, z = np.float64(ng[i, 0]), np.float64(ng[i, 1]), np.float64(ng[i, 2])
         norm = np.sqrt(x * x + y * y + z * z)
         if norm == 0.0:
             continue
@@ -168,9 +442,9 @@ class RayScene:
 
     def __init__(self, world: World):
         self.world = world
-        self._static = _scene(world.triangles)
+        self._static = Mesh(world.triangles)
         self.static_material = world.material.astype(np.int64)  # (T,) material id per world triangle
-        self._dynamic: rtcs.EmbreeScene | None = None
+        self._dynamic: Mesh | None = None
         self._dynamic_triangles = np.zeros((0, 3, 3), np.float32)  # (V, 3, 3) the vehicles' triangles
         self.dyn_material = np.zeros(1, np.int64)  # (V,) per vehicle triangle (one dummy entry when empty)
         self.dyn_actor = np.zeros(1, np.int64)
@@ -197,7 +471,7 @@ class RayScene:
             self.dyn_material, self.dyn_actor = np.zeros(1, np.int64), np.zeros(1, np.int64)
         else:
             self._dynamic_triangles = np.ascontiguousarray(np.concatenate(tris), dtype=np.float32)
-            self._dynamic = _scene(self._dynamic_triangles)
+            self._dynamic = Mesh(self._dynamic_triangles)
             self.dyn_material = np.concatenate(mats).astype(np.int64)
             self.dyn_actor = np.concatenate(actors).astype(np.int64)
         self._lidar_tables()
@@ -212,29 +486,34 @@ class RayScene:
         return rays_near_spheres(origin, dirs, *self.spheres)
 
     def occluded(self, origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-        """(N,) bool: the ray (origins (N, 3) or (3,), unit dirs (N, 3)) hits anything (Embree any-hit)."""
+        """(N,) bool: the ray (origins (N, 3) or (3,), unit dirs (N, 3)) hits anything. Embree's any-hit
+        query on the grown triangles clears the rays that pass everything by GROW_M; the rest are settled
+        (Mesh.first_hits)."""
         origin = np.asarray(origins, dtype=np.float64)
         origins32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
         dirs32 = np.ascontiguousarray(dirs, dtype=np.float32)
-        out = self._static.run(origins32, dirs32, query="OCCLUDED") >= 0
-        if self._dynamic is not None:
-            near = np.flatnonzero(~out & self._candidates(origin, dirs))
-            if len(near):
-                out[near] = self._dynamic.run(origins32[near], dirs32[near], query="OCCLUDED") >= 0
+        out = np.zeros(len(dirs32), bool)
+        for mesh, rays in ((self._static, np.arange(len(dirs32))),
+                           (self._dynamic, np.flatnonzero(self._candidates(origin, dirs)))):
+            rays = rays[~out[rays]]
+            if mesh is None or not len(rays):
+                continue
+            maybe = rays[mesh.embree.run(origins32[rays], dirs32[rays], query="OCCLUDED") >= 0]
+            if len(maybe):
+                out[maybe] = mesh.first_hits(origins32[maybe], dirs32[maybe])["primID"] >= 0
         return out
 
     def cast_parts(self, origins32: np.ndarray, dirs32: np.ndarray, near: np.ndarray,
                    max_t: float = 1e37) -> tuple[dict, dict]:
-        """Embree's hits, their distances and normals recomputed from the hit triangles (``_exact_run``;
+        """Settled first hits (``Mesh.first_hits``: triangle, and distance and normal recomputed from it;
         float32 (N, 3) origins and dirs, hits up to max_t): the static world for all rays and the
         vehicles for the rays `near` (sorted indices) only."""
-        st = _exact_run(self._static, self.world.triangles, origins32, dirs32, max_t)
+        st = self._static.first_hits(origins32, dirs32, max_t)
         if self._dynamic is None or len(near) == 0:
             return st, {"tfar": np.zeros(0, np.float32), "primID": np.zeros(0, np.int32),
                         "Ng": np.zeros((0, 3), np.float32)}
         # a vehicle counts only when nearer than the static hit: stop each ray there
-        return st, _exact_run(self._dynamic, self._dynamic_triangles, origins32[near], dirs32[near],
-                              st["tfar"][near])
+        return st, self._dynamic.first_hits(origins32[near], dirs32[near], st["tfar"][near])
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> Hits:
         """First hits of rays (origins (N, 3) or (3,), unit dirs (N, 3)), world frame."""

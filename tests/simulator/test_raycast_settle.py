@@ -1,0 +1,200 @@
+"""The ray caster settles each hit itself (simulator/raycast.py): a ray's hit is the nearest triangle it meets in
+float64, ties to the lower index, whatever Embree proposed. Checked against a brute-force numpy cast, and by
+making Embree's proposals differ (rays moved by a few ulp on their way to Embree, triangles grown by another
+margin) as another CPU's kernels would: the settled hits and the data set's bytes must not move."""
+import numpy as np
+import pytest
+
+import simulator.raycast as raycast
+from simulator import generate
+from tests.simulator.test_golden import digests
+
+
+def brute_force(tris: np.ndarray, origins: np.ndarray, dirs: np.ndarray, limit: float = np.inf) -> np.ndarray:
+    """(N,) index of the nearest triangle each ray meets at 0 < t <= limit (edges included; ties: the lower
+    index; -1: none): Moller-Trumbore over every triangle in float64, numpy, each product and sum spelled out
+    in the caster's order (a ray aimed at a shared edge is met or not by the last bit)."""
+    v = tris.astype(np.float64)
+    ax, ay, az = v[:, 0, 0], v[:, 0, 1], v[:, 0, 2]
+    e1x, e1y, e1z = v[:, 1, 0] - ax, v[:, 1, 1] - ay, v[:, 1, 2] - az
+    e2x, e2y, e2z = v[:, 2, 0] - ax, v[:, 2, 1] - ay, v[:, 2, 2] - az
+    out = np.full(len(dirs), -1)
+    for i, (o, d) in enumerate(zip(origins.astype(np.float64), dirs.astype(np.float64))):
+        dx, dy, dz = d
+        px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+        det = e1x * px + e1y * py + e1z * pz
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / det
+            sx, sy, sz = o[0] - ax, o[1] - ay, o[2] - az
+            u = (sx * px + sy * py + sz * pz) * inv
+            qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+            w = (dx * qx + dy * qy + dz * qz) * inv
+            t = (e2x * qx + e2y * qy + e2z * qz) * inv
+        met = (det != 0) & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 0) & (t <= limit)
+        if met.any():
+            k = np.flatnonzero(met)
+            out[i] = k[np.lexsort((k, t[k]))[0]]
+    return out
+
+
+def _soup(rng: np.random.Generator) -> np.ndarray:
+    """Triangles that share edges and vertices, cross and touch: a bumpy height field of 2 m cells, boxes
+    standing on it and sunk into it, and thin slanted plates leaning on the boxes."""
+    n = 12
+    x, y = np.meshgrid(np.arange(n + 1) * 2.0, np.arange(n + 1) * 2.0, indexing="ij")
+    z = rng.uniform(-0.2, 0.2, x.shape)
+    grid = np.stack([x, y, z], -1)
+    quads = [(grid[i, j], grid[i + 1, j], grid[i + 1, j + 1], grid[i, j + 1]) for i in range(n) for j in range(n)]
+    tris = [t for a, b, c, d in quads for t in ((a, b, c), (a, c, d))]
+    for _ in range(10):
+        lo = np.r_[rng.uniform(2, 20, 2), rng.uniform(-0.4, 0.0)]
+        hi = lo + rng.uniform(0.5, 3, 3)
+        c = np.array([[lo[0], lo[1], lo[2]], [hi[0], lo[1], lo[2]], [hi[0], hi[1], lo[2]], [lo[0], hi[1], lo[2]]])
+        top = c.copy()
+        top[:, 2] = hi[2]
+        faces = [(c[0], c[1], c[2]), (c[0], c[2], c[3]), (top[0], top[2], top[1]), (top[0], top[3], top[2])]
+        for k in range(4):
+            a, b = c[k], c[(k + 1) % 4]
+            faces += [(a, b, top[(k + 1) % 4]), (a, top[(k + 1) % 4], top[k])]
+        tris += faces
+        tris.append((top[0], top[1] + [0.3, 0.0, 0.8], top[2]))  # a plate leaning on the box's top edge
+    return np.array(tris, np.float32)
+
+
+def _rays_at_edges(tris: np.ndarray, origin: np.ndarray, rng: np.random.Generator, n: int) -> np.ndarray:
+    """Unit directions from origin at the triangles' vertices, edge points and a few random points."""
+    k = rng.integers(0, len(tris), n)
+    e = rng.integers(0, 3, n)
+    f = rng.uniform(0, 1, n)[:, None]
+    v = tris.astype(np.float64)
+    pts = v[k, e] * f + v[k, (e + 1) % 3] * (1 - f)
+    pts[: n // 4] = v[k[: n // 4], e[: n // 4]]
+    pts[n - n // 8:] += rng.normal(0, 0.5, (n // 8, 3))
+    d = pts - origin
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def test_grown_triangles_hold_the_original_and_move_each_edge_out_by_at_least_twice_the_margin():
+    rng = np.random.default_rng(0)
+    tris = rng.uniform(-3, 3, (300, 3, 3))
+    # slivers: a corner 50 um off the opposite edge's midpoint
+    mid = (tris[:20, 0] + tris[:20, 1]) / 2
+    off = np.cross(tris[:20, 1] - tris[:20, 0], rng.normal(size=(20, 3)))
+    tris[:20, 2] = mid + 5e-5 * off / np.linalg.norm(off, axis=1, keepdims=True)
+    tris = tris.astype(np.float32)
+    big = raycast.grown(tris, 1e-3, 1.0).astype(np.float64)
+    t = tris.astype(np.float64)
+    for k in range(len(t)):
+        n = np.cross(t[k, 1] - t[k, 0], t[k, 2] - t[k, 0])
+        nb = np.cross(big[k, 1] - big[k, 0], big[k, 2] - big[k, 0])
+        if k >= 20:  # (a sliver's normal is float32's rounding)
+            assert nb @ n / np.linalg.norm(nb) / np.linalg.norm(n) > 1 - 1e-6  # same plane orientation
+            assert np.abs((big[k] - t[k, 0]) @ n / np.linalg.norm(n)).max() < 1e-5  # and the same plane
+        moved = np.linalg.norm(big[k] - t[k], axis=1).max()
+        assert moved <= 1.0 + 1e-5
+        for e in range(3):
+            a, b = t[k, e], t[k, (e + 1) % 3]
+            inward = np.cross(n, b - a)
+            inward /= np.linalg.norm(inward)
+            # the grown triangle's matching edge (the same corners, scaled) lies outside this one's
+            out = -min((big[k, e] - a) @ inward, (big[k, (e + 1) % 3] - b) @ inward)
+            assert out >= 0
+            if k >= 20:
+                assert out >= 2e-3 * (1 - 1e-3)  # by 2 mm at least
+        if k < 20:
+            assert moved >= 0.9  # a sliver: grown as far as its corners may move
+
+
+def test_the_grid_lists_every_triangle_whose_grown_bounds_hold_a_point():
+    rng = np.random.default_rng(1)
+    tris = _soup(rng)
+    box, starts, items = raycast._grid(tris, 2.0, 4e-3)
+    lo, hi = tris.min(1) - 4e-3, tris.max(1) + 4e-3
+    for p in rng.uniform([-1, -1], [25, 25], (500, 2)):
+        ix, iy = int((p[0] - box[0]) // 2.0), int((p[1] - box[1]) // 2.0)
+        want = np.flatnonzero(np.all((lo[:, :2] <= p) & (p <= hi[:, :2]), 1))
+        if not (0 <= ix < box[2] and 0 <= iy < box[3]):
+            assert len(want) == 0
+            continue
+        c = ix * int(box[3]) + iy
+        listed = items[starts[c]:starts[c + 1]]
+        assert set(want) <= set(listed) and list(listed) == sorted(listed)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_first_hits_equal_a_brute_force_float64_cast(seed):
+    rng = np.random.default_rng(seed)
+    tris = _soup(rng)
+    mesh = raycast.Mesh(tris)
+    origin = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(1, 6)])
+    dirs = _rays_at_edges(tris, origin, rng, 1500).astype(np.float32)
+    o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
+    got = mesh.first_hits(o32, dirs)
+    want = brute_force(tris, o32, dirs)
+    assert (want >= 0).sum() > 1200
+    np.testing.assert_array_equal(got["primID"], want)
+    limited = mesh.first_hits(o32, dirs, 8.0)  # a limit: nothing beyond it
+    np.testing.assert_array_equal(limited["primID"], brute_force(tris, o32, dirs, 8.0))
+    # Embree alone, on the triangles as they are, disagrees on some of these rays
+    raw = raycast._run(raycast._scene(tris), o32, dirs)["primID"]
+    assert (raw != want).sum() >= 1
+
+
+def _shaken(run, rng):
+    """``run`` (raycast's Embree call) with the rays moved by up to 3 ulp on their way to Embree."""
+    def shaken(scene, origins, dirs, max_t=1e37):
+        o, d = np.asarray(origins, np.float32), np.asarray(dirs, np.float32)
+        o = o + rng.integers(-3, 4, o.shape).astype(np.float32) * np.spacing(o)
+        d = d + rng.integers(-3, 4, d.shape).astype(np.float32) * np.spacing(d)
+        return run(scene, o.astype(np.float32), d.astype(np.float32), max_t)
+    return shaken
+
+
+OTHER = ["shaken", "grown more"]
+
+
+def other_embree(how: str, monkeypatch) -> None:
+    """Embree's proposals as another CPU would make them: rays moved by a few ulp (``shaken``), or triangles
+    grown by 1.7 mm instead of 1 mm (``grown more``)."""
+    import simulator.frame
+    monkeypatch.setattr(simulator.frame, "_SCENES", {})  # the worlds' scenes, made again under this Embree
+    if how == "shaken":
+        monkeypatch.setattr(raycast, "_run", _shaken(raycast._run, np.random.default_rng(7)))
+    else:
+        monkeypatch.setattr(raycast, "GROW_M", 1.7e-3)
+
+
+@pytest.mark.parametrize("how", OTHER)
+def test_settled_hits_do_not_move_with_embree(highway_scene, how, monkeypatch):
+    rng = np.random.default_rng(3)
+    origin = np.array([300.0, -5.0, 1.9])
+    tris = highway_scene.world.triangles
+    near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
+    dirs = _rays_at_edges(tris[near], origin, rng, 6000)
+    fresh = raycast.RayScene(highway_scene.world)
+    before = fresh.cast(origin, dirs)
+    lit_before = fresh.occluded(np.broadcast_to(origin + [0, 0, 0.5], dirs.shape), dirs)
+    raw = raycast._run(fresh._static.embree, np.broadcast_to(origin.astype(np.float32), dirs.shape),
+                       dirs.astype(np.float32))["primID"]
+    other_embree(how, monkeypatch)
+    other = raycast.RayScene(highway_scene.world)  # grown again, if the margin changed
+    raw_other = raycast._run(other._static.embree, np.broadcast_to(origin.astype(np.float32), dirs.shape),
+                             dirs.astype(np.float32))["primID"]
+    assert (raw != raw_other).sum() > 50  # Embree's proposals differ on many of these rays
+    after = other.cast(origin, dirs)
+    for a, b in ((before.t, after.t), (before.normal, after.normal), (before.material, after.material),
+                 (before.actor, after.actor)):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(lit_before, other.occluded(np.broadcast_to(origin + [0, 0, 0.5], dirs.shape), dirs))
+
+
+@pytest.mark.parametrize("kwargs", [dict(preset="train", frames=4, seed=5),
+                                    dict(preset="sotif", frames=2, weathers="ClearNoon,HardRainNight", seed=3,
+                                         instances=1)])
+@pytest.mark.parametrize("how", OTHER)
+def test_a_data_set_does_not_move_with_embree(tmp_path, kwargs, how, monkeypatch):
+    plain = digests(generate(tmp_path / "plain", progress=False, **kwargs))
+    other_embree(how, monkeypatch)
+    other = digests(generate(tmp_path / "other", progress=False, **kwargs))
+    assert any(k.startswith("training/velodyne/") for k in plain)
+    assert [k for k in plain if plain[k] != other.get(k)] == []
