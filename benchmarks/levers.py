@@ -14,11 +14,13 @@ Levers: ``ema`` (Schedule.ema = 0.999: the exponential moving average of the wei
 ``amp`` (Schedule.amp = "bf16": each step's forward pass and loss under bfloat16 autocast, ``harness.amp``; only on
 a CPU with native bf16, refused elsewhere); ``scenes`` (``SCENES`` training scenes, the default run's generator and
 seed, at the same number of steps: the epochs divided by the ratio of the sets' training frames, rounded; a
-schedule whose epochs do not divide is refused); ``weather`` (the default run's training scenes under the 21 weather
-presets in turn, in place of the six dry ones: rain, wet roads and night in training; the same steps). The weight average does not change a training's steps (the network's
-own weights of a training with it equal, bit for bit, those of one without: ``tests/harness/test_train.py``), so
-the ``ema`` training gives both rows of a draw: the average and the network's own weights, ``none``. Without
-``ema`` among the levers, ``none`` is a training of its own.
+schedule whose epochs do not divide is refused); ``weather`` (the default run's training scenes under the 21
+weather presets in turn, in place of the six dry ones: rain, wet roads and night in training; the same steps).
+The weight average does not change a training's steps (the network's own weights of a training with it equal,
+bit for bit, those of one without: ``tests/harness/test_train.py``), so the ``ema`` training gives both rows of a
+draw: the average and the network's own weights, ``none``. Without ``ema`` among the levers, ``none`` is a training
+of its own. Each draw is also scored on the SOTIF frames of each precipitation class (dry, wet, rain: a second
+table).
 
 Each training is ``harness.train.train`` on the compact profile (the default run's), one thread; ``--jobs``
 trainings at once. Prints (and writes to ``DIR/levers/table.md``) a Markdown table: model, lever, draws, val mean /
