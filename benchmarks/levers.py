@@ -19,8 +19,8 @@ weather presets in turn, in place of the six dry ones: rain, wet roads and night
 The weight average does not change a training's steps (the network's own weights of a training with it equal,
 bit for bit, those of one without: ``tests/harness/test_train.py``), so the ``ema`` training gives both rows of a
 draw: the average and the network's own weights, ``none``. Without ``ema`` among the levers, ``none`` is a training
-of its own. Each draw is also scored on the SOTIF frames of each precipitation class (dry, wet, rain: a second
-table).
+of its own. Each draw is also scored on the SOTIF frames of each precipitation class (dry, wet, rain) and on the
+cars of each distance bin (a second table); a result file written before these is scored again on its next run.
 
 Each training is ``harness.train.train`` on the compact profile (the default run's), one thread; ``--jobs``
 trainings at once. Prints (and writes to ``DIR/levers/table.md``) a Markdown table: model, lever, draws, val mean /
@@ -100,7 +100,7 @@ def _scores(net, run_dir: Path) -> dict:
     meta = read_frames_meta(sotif / "meta" / "frames.csv")
     head = validation_ap(net, sotif, split="test", groups=dict(zip(meta["frame_id"], meta["precipitation_class"])))
     return {"val": validation_ap(net, run_dir / "data" / "val")["3d_moderate"], "headline": head["3d_all"],
-            "headline_by": head["3d_all_by"]}
+            "headline_by": {**head["3d_all_by"], **head["3d_all_distance"]}}
 
 
 def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compact") -> dict:
@@ -116,11 +116,14 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
     done = run_dir / "levers" / f"{name}.json"
     if done.is_file():
         out = json.loads(done.read_text())
-        if lever == "ema" and "headline_by" not in out["rows"]["none"]:  # scored before the classes were
-            net, _ = zoo.load_checkpoint(run_dir / "levers" / name / "checkpoint.pt")
-            net.load_state_dict(zoo.read_checkpoint(run_dir / "levers" / name / "checkpoint.pt")["train_state_dict"])
-            out["rows"]["none"] = {**_scores(net, run_dir), "seconds": out["rows"]["none"]["seconds"],
-                                   "headline_before": out["rows"]["none"]["headline"]}
+        ckpt = run_dir / "levers" / name / "checkpoint.pt"
+        for row in [r for r in out["rows"] if r != "ema" and "0-30" not in out["rows"][r].get("headline_by", {})]:
+            # scored before the classes and distance bins were (the average's own row stays as it was)
+            net, _ = zoo.load_checkpoint(ckpt)
+            if row == "none" and lever == "ema":
+                net.load_state_dict(zoo.read_checkpoint(ckpt)["train_state_dict"])
+            out["rows"][row] = {**_scores(net, run_dir), "seconds": out["rows"][row]["seconds"],
+                                "headline_before": out["rows"][row]["headline"]}
             atomic_write_text(done, json.dumps(out, indent=1))
         return out
     recipe = zoo.resolve(model, profile)
@@ -175,12 +178,13 @@ def table(results: list[dict], levers: list[str]) -> str:
 
 
 def table_by_class(results: list[dict]) -> str:
-    """The headline AP3D of each draw on the SOTIF frames of each precipitation class (draws scored with it)."""
+    """The headline AP3D of each draw on the SOTIF frames of each precipitation class and on each distance bin's
+    cars (draws scored with them)."""
     rows = sorted(((r["model"], lever, r["seed"], row["headline"], row["headline_by"]) for r in results
                    for lever, row in r["rows"].items() if "headline_by" in row), key=lambda x: x[:3])
     if not rows:
         return ""
-    classes = sorted({c for *_, by in rows for c in by})
+    classes = list(dict.fromkeys(c for *_, by in rows for c in by))
     lines = ["| model | lever | seed | headline | " + " | ".join(f"headline {c}" for c in classes) + " |",
              "|---|---|---:|---:|" + "---:|" * len(classes)]
     for model, lever, seed, head, by in rows:
@@ -215,7 +219,8 @@ def main(argv=None) -> int:
     cpus = sorted({r["cpu"] or "unknown CPU" for r in results})
     text = f"CPU: {', '.join(cpus)}\n\n" + text
     by_class = table_by_class(results)
-    text += f"\nThe headline by precipitation class of the SOTIF frames:\n\n{by_class}" if by_class else ""
+    if by_class:
+        text += f"\nThe headline by precipitation class of the SOTIF frames and by distance:\n\n{by_class}"
     from harness.core.files import atomic_write_text
     atomic_write_text(a.run / "levers" / "table.md", text)
     print(text, end="")

@@ -237,7 +237,8 @@ def eager_inputs(sample, camera: bool, device="cpu") -> list[torch.Tensor]:
 def validation_ap(net, data: Path, max_frames: int | None = None, split: str = "val",
                   groups: dict[str, str] | None = None) -> dict:
     """AP40 (3D / BEV, IoU 0.7) of the eager model on the ``split`` split (default ``val``) with the project's KITTI
-    evaluator: KITTI moderate and the headline (all distances, height filter off). With ``groups`` (frame id ->
+    evaluator: KITTI moderate and the headline (all distances, height filter off; and per distance bin,
+    ``3d_all_distance``). With ``groups`` (frame id ->
     group name, e.g. the precipitation class) also the headline 3D AP of each group's frames (``3d_all_by``)."""
     from harness.eval_kitti import build_eval_set, kitti_ap
     from harness.evaluate import headline_summary
@@ -256,9 +257,11 @@ def validation_ap(net, data: Path, max_frames: int | None = None, split: str = "
             dt.append(boxes_to_results(out[0].cpu().numpy(), out[1].cpu().numpy(), calib, (375, 1242)))
     es = build_eval_set(gt, dt)
     ap = kitti_ap(es)
-    head = headline_summary(es)["headline"]
+    summary = headline_summary(es)
+    head = summary["headline"]
     out = {"3d_moderate": ap["3d"]["0.7"]["R40"]["moderate"], "bev_moderate": ap["bev"]["0.7"]["R40"]["moderate"],
-           "3d_all": head["3d"]["0.7"], "bev_all": head["bev"]["0.7"], "frames": n}
+           "3d_all": head["3d"]["0.7"], "bev_all": head["bev"]["0.7"], "frames": n,
+           "3d_all_distance": summary["distance"]["3d"]["0.7"]}
     if groups is not None:
         names = [groups[f] for f in ds.frame_ids[:n]]
         out["3d_all_by"] = {g: headline_summary(build_eval_set([gt[i] for i in range(n) if names[i] == g],

@@ -417,7 +417,7 @@ def test_validation_ap_by_group_equals_the_ap_of_the_groups_frames_alone(tmp_pat
     first = {f: "a" if i < 4 else "b" for i, f in enumerate(ds.frame_ids)}
     out = validation_ap(net, data, split="train", groups=first)
     alone = validation_ap(net, data, split="train", max_frames=4)["3d_all"]  # frames 0-3: group "a"
-    assert set(out["3d_all_by"]) == {"a", "b"}
+    assert set(out["3d_all_by"]) == {"a", "b"} and set(out["3d_all_distance"]) == {"0-30", "30-50", "50-80"}
     assert out["3d_all_by"]["a"] == pytest.approx(alone, abs=1e-9)
     assert all(0 < ap < 100 for ap in out["3d_all_by"].values()) and out["3d_all_by"]["a"] != out["3d_all_by"]["b"]
     one = validation_ap(net, data, split="train", groups=dict.fromkeys(ds.frame_ids, "all"))
