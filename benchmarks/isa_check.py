@@ -2,7 +2,9 @@
 
 1. Embree's raw output per instruction set: the HDL-64E pattern cast over the highway with Embree
    devices pinned to AVX-512, AVX2 and SSE4.2 (ctypes on the library embreex ships; embreex makes
-   its own device and takes no configuration): rays whose tfar, Ng or hit triangle differ.
+   its own device and takes no configuration): rays whose tfar, Ng or hit triangle differ. And (1b)
+   rays aimed at the highway's vertices and edges, cast with every ISA the CPU runs: Embree's own
+   triangle against the one the ray caster settles from that ISA's candidates.
 2. Fused multiply-adds in the simulator's compiled (numba) code: none means its arithmetic is plain
    IEEE and the same on every x86-64 CPU with the same compiler flags.
 3. The golden cases of tests/simulator/test_golden.py made in a subprocess that runs as another CPU
@@ -107,6 +109,38 @@ def embree_by_isa(poses: int) -> None:
                   f"(max {dt.max():.2e} m), Ng on {(ng != ref[1]).any(1).sum()}, hit triangle on {(prim != ref[2]).sum()}")
 
 
+def isas() -> list[str]:
+    """The Embree ISAs this CPU runs, best first."""
+    flags = Path("/proc/cpuinfo").read_text().split()
+    return [isa for isa, flag in (("avx512", "avx512f"), ("avx2", "avx2"), ("avx", "avx"), ("sse4.2", "sse4_2"),
+                                  ("sse2", "sse2")) if flag in flags]
+
+
+def settled_by_isa(n: int = 20000) -> None:
+    """The settled triangle (raycast.settle on the candidates of Embree pinned to each ISA, on the grown
+    triangles) against Embree's own answer, for rays aimed at the highway's vertices and edges."""
+    import simulator.raycast as rc
+    from simulator.road import RoadConfig
+    from simulator.world import build_world
+    from tests.simulator.test_raycast_settle import _rays_at_edges
+    lib, tris = _embree(), build_world(RoadConfig(), np.random.default_rng(0)).triangles
+    mesh, origin = rc.Mesh(tris), np.array([300.0, -5.0, 1.9])
+    near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
+    dirs = _rays_at_edges(tris[near], origin, np.random.default_rng(3), n).astype(np.float32)
+    o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
+    out = {}
+    for isa in isas():
+        raw = embree_cast(lib, isa, tris, origin, dirs)[2]
+        cand = embree_cast(lib, isa, rc.grown(tris), origin, dirs)[2].astype(np.int64)
+        out[isa] = raw, rc.settle(mesh.triangles, mesh.bounds, mesh.crowded, *mesh.grid, mesh.pad, cand, o32, dirs,
+                                  np.full(n, 1e37))
+    best = next(iter(out))
+    print(f"1b. Settled hits by ISA: {n} rays aimed at the highway's vertices and edges")
+    for isa, (raw, settled) in out.items():
+        print(f"   {isa:7s} vs {best}: Embree's triangle differs on {(raw != out[best][0]).sum()}, "
+              f"the settled one on {(settled != out[best][1]).sum()}")
+
+
 def fma_in_numba() -> None:
     code = ("import importlib, pkgutil, tempfile; from pathlib import Path; import numba, simulator\n"
             "from simulator import generate\n"
@@ -147,6 +181,7 @@ def main() -> None:
     ap.add_argument("--poses", type=int, default=3)
     a = ap.parse_args()
     embree_by_isa(a.poses)
+    settled_by_isa()
     fma_in_numba()
     for cpu in EMULATED:
         golden_as(cpu)
