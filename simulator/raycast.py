@@ -132,12 +132,19 @@ def _crowded(tris, bounds, starts, items, pad):
 
 
 @numba.njit(cache=True)
+def _normal(tris, k):
+    """Triangle k's normal (v1 - v0) x (v2 - v0) in float64, not normalised."""
+    ax, ay, az = np.float64(tris[k, 0, 0]), np.float64(tris[k, 0, 1]), np.float64(tris[k, 0, 2])
+    e1x, e1y, e1z = np.float64(tris[k, 1, 0]) - ax, np.float64(tris[k, 1, 1]) - ay, np.float64(tris[k, 1, 2]) - az
+    e2x, e2y, e2z = np.float64(tris[k, 2, 0]) - ax, np.float64(tris[k, 2, 1]) - ay, np.float64(tris[k, 2, 2]) - az
+    return e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+
+
+@numba.njit(cache=True)
 def _apart(tris, a, b, pad):
     """Triangle b lies more than ``pad`` to one side of triangle a's plane or outside one of a's edges."""
     ax, ay, az = np.float64(tris[a, 0, 0]), np.float64(tris[a, 0, 1]), np.float64(tris[a, 0, 2])
-    e1x, e1y, e1z = np.float64(tris[a, 1, 0]) - ax, np.float64(tris[a, 1, 1]) - ay, np.float64(tris[a, 1, 2]) - az
-    e2x, e2y, e2z = np.float64(tris[a, 2, 0]) - ax, np.float64(tris[a, 2, 1]) - ay, np.float64(tris[a, 2, 2]) - az
-    nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    nx, ny, nz = _normal(tris, a)
     nn = np.sqrt(nx * nx + ny * ny + nz * nz)
     if nn == 0.0:
         return False
@@ -220,11 +227,7 @@ def _meet(tris, k, o, d):
 def _inside(tris, k, hx, hy, hz):
     """How far the point (hx, hy, hz), on triangle k's plane, lies inside its nearest edge (metres;
     negative outside): the least over the edges of (edge x (point - edge start)) . n / |edge| / |n|."""
-    nx_, ny_, nz_ = 0.0, 0.0, 0.0
-    ax, ay, az = np.float64(tris[k, 0, 0]), np.float64(tris[k, 0, 1]), np.float64(tris[k, 0, 2])
-    e1x, e1y, e1z = np.float64(tris[k, 1, 0]) - ax, np.float64(tris[k, 1, 1]) - ay, np.float64(tris[k, 1, 2]) - az
-    e2x, e2y, e2z = np.float64(tris[k, 2, 0]) - ax, np.float64(tris[k, 2, 1]) - ay, np.float64(tris[k, 2, 2]) - az
-    nx_, ny_, nz_ = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+    nx_, ny_, nz_ = _normal(tris, k)
     nn = np.sqrt(nx_ * nx_ + ny_ * ny_ + nz_ * nz_)
     if nn == 0.0:
         return -np.inf
