@@ -201,21 +201,20 @@ def test_a_data_set_does_not_move_with_embree(tmp_path, kwargs, how, monkeypatch
 
 
 def test_settled_hits_are_the_same_from_every_embree_kernel(highway_scene):
-    """Embree's own kernels, pinned by ISA (ctypes on the library embreex ships): their triangles differ on
-    rays aimed at edges, the settled ones do not."""
+    """Embree's own kernels, pinned by ISA (ctypes on the library embreex ships): the settled triangles are the
+    same from each (on an AMD EPYC the kernels' own triangles differ on about 8 % of
+    these rays; on a CPU where they agree this still checks the settling against first_hits)."""
     from benchmarks.isa_check import _embree, embree_cast, isas
     lib, tris, mesh = _embree(), highway_scene.world.triangles, highway_scene._static
     origin = np.array([300.0, -5.0, 1.9])
     near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
     dirs = _rays_at_edges(tris[near], origin, np.random.default_rng(4), 4000).astype(np.float32)
     o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
-    raw, settled = {}, {}
+    settled = {}
     for isa in (isas()[0], "sse4.2"):
-        raw[isa] = embree_cast(lib, isa, tris, origin, dirs)[2]
         cand = embree_cast(lib, isa, raycast.grown(tris), origin, dirs)[2].astype(np.int64)
         settled[isa] = raycast.settle(mesh.triangles, mesh.bounds, mesh.crowded, *mesh.grid, mesh.pad, cand, o32,
                                       dirs, np.full(len(dirs), 1e37))
     best = isas()[0]
-    assert (raw[best] != raw["sse4.2"]).sum() > 50
     np.testing.assert_array_equal(settled[best], settled["sse4.2"])
     np.testing.assert_array_equal(settled[best], mesh.first_hits(o32, dirs)["primID"])
