@@ -116,24 +116,44 @@ def isas() -> list[str]:
                                   ("sse2", "sse2")) if flag in flags]
 
 
+def rays_at_edges(tris: np.ndarray, origin: np.ndarray, rng: np.random.Generator, n: int) -> np.ndarray:
+    """Unit directions from origin at the triangles' vertices, edge points and a few random points."""
+    k = rng.integers(0, len(tris), n)
+    e = rng.integers(0, 3, n)
+    f = rng.uniform(0, 1, n)[:, None]
+    v = tris.astype(np.float64)
+    pts = v[k, e] * f + v[k, (e + 1) % 3] * (1 - f)
+    pts[: n // 4] = v[k[: n // 4], e[: n // 4]]
+    pts[n - n // 8:] += rng.normal(0, 0.5, (n // 8, 3))
+    d = pts - origin
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def settle_by_isa(lib, mesh, origin: np.ndarray, dirs: np.ndarray, isas_: list[str]) -> dict:
+    """{isa: (Embree's own triangle, the settled one)} per ray (float32 unit dirs from origin), Embree pinned to
+    each ISA: its own cast of the mesh's triangles, and its candidates on the grown ones settled (raycast.settle)."""
+    import simulator.raycast as rc
+    o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
+    out = {}
+    for isa in isas_:
+        raw = embree_cast(lib, isa, mesh.triangles, origin, dirs)[2]
+        cand = embree_cast(lib, isa, rc.grown(mesh.triangles), origin, dirs)[2].astype(np.int64)
+        out[isa] = raw, rc.settle(mesh.triangles, mesh.bounds, mesh.crowded, *mesh.grid, mesh.pad, cand, o32, dirs,
+                                  np.full(len(dirs), 1e37))
+    return out
+
+
 def settled_by_isa(n: int = 20000) -> None:
     """The settled triangle (raycast.settle on the candidates of Embree pinned to each ISA, on the grown
     triangles) against Embree's own answer, for rays aimed at the highway's vertices and edges."""
     import simulator.raycast as rc
     from simulator.road import RoadConfig
     from simulator.world import build_world
-    from tests.simulator.test_raycast_settle import _rays_at_edges
-    lib, tris = _embree(), build_world(RoadConfig(), np.random.default_rng(0)).triangles
-    mesh, origin = rc.Mesh(tris), np.array([300.0, -5.0, 1.9])
+    tris = build_world(RoadConfig(), np.random.default_rng(0)).triangles
+    origin = np.array([300.0, -5.0, 1.9])
     near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
-    dirs = _rays_at_edges(tris[near], origin, np.random.default_rng(3), n).astype(np.float32)
-    o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
-    out = {}
-    for isa in isas():
-        raw = embree_cast(lib, isa, tris, origin, dirs)[2]
-        cand = embree_cast(lib, isa, rc.grown(tris), origin, dirs)[2].astype(np.int64)
-        out[isa] = raw, rc.settle(mesh.triangles, mesh.bounds, mesh.crowded, *mesh.grid, mesh.pad, cand, o32, dirs,
-                                  np.full(n, 1e37))
+    dirs = rays_at_edges(tris[near], origin, np.random.default_rng(3), n).astype(np.float32)
+    out = settle_by_isa(_embree(), rc.Mesh(tris), origin, dirs, isas())
     best = next(iter(out))
     print(f"1b. Settled hits by ISA: {n} rays aimed at the highway's vertices and edges")
     for isa, (raw, settled) in out.items():

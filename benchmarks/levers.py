@@ -68,19 +68,10 @@ def weather_set(run_dir: Path) -> Path:
     weather presets in turn (scene i under preset i mod 21) in place of the six dry ones."""
     from harness import run
     from harness.stages import Stages
-    from simulator import generate
-    from simulator.dataset import GENERATOR_VERSION
     from simulator.weather import WEATHER_PRESETS
-    cfg = run.PROFILES["default"]
     stages = Stages(run_dir / "weather", progress=False)
-    out, seed = run_dir / "weather" / "data" / "train", cfg.seed + run.SIM_SEED_OFFSET["train"]
-    key = {"preset": "train", "frames": cfg.train_frames, "seed": seed, "lidar": cfg.lidar_model,
-           "generator": GENERATOR_VERSION, "weathers": list(WEATHER_PRESETS)}
-    stages.run("simulate_train", key, lambda: {"out": str(generate(
-        out, preset="train", frames=cfg.train_frames, weathers=list(WEATHER_PRESETS), seed=seed, workers=cfg.workers,
-        lidar_model=cfg.lidar_model, progress=False, force=True))},
-        outputs=[out / part for part in run.DATA_PARTS], by_stat=True)
-    return out
+    run.simulate_set(stages, run.PROFILES["default"], run_dir / "weather" / "data", "train", list(WEATHER_PRESETS))
+    return run_dir / "weather" / "data" / "train"
 
 
 def same_steps(epochs: int, frames: int, more_frames: int) -> int:

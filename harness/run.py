@@ -141,13 +141,15 @@ DATA_PARTS = ("training/velodyne", "training/image_2", "training/calib", "traini
 SIM_SEED_OFFSET = {"sotif": 0, "train": 1000, "sweep": 2000}  # each data set's simulation seed: run seed + offset
 
 
-def simulate_set(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) -> str:
+def simulate_set(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str,
+                 weathers: list[str] | None = None) -> str:
     """Simulate (or resume) a data set; returns the hash of its ``meta/dataset.json``, which lists the
     SHA-256 of every frame's files: the stages that read the data set key on it. A changed, truncated or
     missing file of the set is removed and the simulator makes its frame again (the same bytes: it seeds
     every frame), so the stages after it redo nothing unless the data set's bytes differ. The SOTIF and
     sweep sets are drawn with ``cfg.sotif_instances`` / ``cfg.sweep_instances`` scenario instances (a
-    SOTIF set of None instances is the study's one instance per weather, keyed as it always was)."""
+    SOTIF set of None instances is the study's one instance per weather, keyed as it always was); ``weathers``
+    replaces the preset's own (keyed only when given)."""
     from simulator import generate
     instances = {"train": None, "sotif": cfg.sotif_instances, "sweep": cfg.sweep_instances}[preset]
     # an instance set's size is its instance count: frames are not capped
@@ -157,9 +159,10 @@ def simulate_set(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str) ->
     from simulator.dataset import GENERATOR_VERSION
     # the run's own val set picks the operating thresholds: an instance set is then all test
     val_share = {"val_share": 0.0} if instances is not None and cfg.val_frames else {}
+    chosen = {"weathers": list(weathers)} if weathers is not None else {}
     key = {"preset": preset, "frames": frames, "seed": seed, "lidar": cfg.lidar_model, "generator": GENERATOR_VERSION,
-           **({"instances": instances} if instances is not None else {}), **val_share}
-    more = {"instances": instances, **val_share} if instances is not None else {}
+           **({"instances": instances} if instances is not None else {}), **val_share, **chosen}
+    more = {**({"instances": instances, **val_share} if instances is not None else {}), **chosen}
     # force: the folder is the run's own, and a changed key (e.g. another --lidar-model) simulates it
     # again over the data set of the old one; a partial one of the same key still resumes
     stages.run(f"simulate_{preset}", key, lambda: {"out": str(generate(

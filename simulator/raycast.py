@@ -348,9 +348,7 @@ def exact_hits(tris: np.ndarray, prim: np.ndarray, origins: np.ndarray, dirs: np
         if p < 0:
             continue
         ax, ay, az = np.float64(tris[p, 0, 0]), np.float64(tris[p, 0, 1]), np.float64(tris[p, 0, 2])
-        e1x, e1y, e1z = np.float64(tris[p, 1, 0]) - ax, np.float64(tris[p, 1, 1]) - ay, np.float64(tris[p, 1, 2]) - az
-        e2x, e2y, e2z = np.float64(tris[p, 2, 0]) - ax, np.float64(tris[p, 2, 1]) - ay, np.float64(tris[p, 2, 2]) - az
-        nx, ny, nz = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+        nx, ny, nz = _normal(tris, p)
         denom = np.float64(dirs[i, 0]) * nx + np.float64(dirs[i, 1]) * ny + np.float64(dirs[i, 2]) * nz
         if denom != 0.0:
             ox, oy, oz = np.float64(origins[i, 0]), np.float64(origins[i, 1]), np.float64(origins[i, 2])

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import simulator.raycast as raycast
+from benchmarks.isa_check import _embree, isas, rays_at_edges, settle_by_isa
 from simulator import generate
 from tests.simulator.test_golden import digests
 
@@ -61,19 +62,6 @@ def _soup(rng: np.random.Generator) -> np.ndarray:
     return np.array(tris, np.float32)
 
 
-def _rays_at_edges(tris: np.ndarray, origin: np.ndarray, rng: np.random.Generator, n: int) -> np.ndarray:
-    """Unit directions from origin at the triangles' vertices, edge points and a few random points."""
-    k = rng.integers(0, len(tris), n)
-    e = rng.integers(0, 3, n)
-    f = rng.uniform(0, 1, n)[:, None]
-    v = tris.astype(np.float64)
-    pts = v[k, e] * f + v[k, (e + 1) % 3] * (1 - f)
-    pts[: n // 4] = v[k[: n // 4], e[: n // 4]]
-    pts[n - n // 8:] += rng.normal(0, 0.5, (n // 8, 3))
-    d = pts - origin
-    return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
 def test_grown_triangles_hold_the_original_and_move_each_edge_out_by_at_least_twice_the_margin():
     rng = np.random.default_rng(0)
     tris = rng.uniform(-3, 3, (300, 3, 3))
@@ -127,7 +115,7 @@ def test_first_hits_equal_a_brute_force_float64_cast(seed):
     tris = _soup(rng)
     mesh = raycast.Mesh(tris)
     origin = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(1, 6)])
-    dirs = _rays_at_edges(tris, origin, rng, 1500).astype(np.float32)
+    dirs = rays_at_edges(tris, origin, rng, 1500).astype(np.float32)
     o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
     got = mesh.first_hits(o32, dirs)
     want = brute_force(tris, o32, dirs)
@@ -170,7 +158,7 @@ def test_settled_hits_do_not_move_with_embree(highway_scene, how, monkeypatch):
     origin = np.array([300.0, -5.0, 1.9])
     tris = highway_scene.world.triangles
     near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
-    dirs = _rays_at_edges(tris[near], origin, rng, 6000)
+    dirs = rays_at_edges(tris[near], origin, rng, 6000)
     fresh = raycast.RayScene(highway_scene.world)
     before = fresh.cast(origin, dirs)
     lit_before = fresh.occluded(np.broadcast_to(origin + [0, 0, 0.5], dirs.shape), dirs)
@@ -204,17 +192,12 @@ def test_settled_hits_are_the_same_from_every_embree_kernel(highway_scene):
     """Embree's own kernels, pinned by ISA (ctypes on the library embreex ships): the settled triangles are the
     same from each (on an AMD EPYC the kernels' own triangles differ on about 8 % of
     these rays; on a CPU where they agree this still checks the settling against first_hits)."""
-    from benchmarks.isa_check import _embree, embree_cast, isas
-    lib, tris, mesh = _embree(), highway_scene.world.triangles, highway_scene._static
+    tris, mesh = highway_scene.world.triangles, highway_scene._static
     origin = np.array([300.0, -5.0, 1.9])
     near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
-    dirs = _rays_at_edges(tris[near], origin, np.random.default_rng(4), 4000).astype(np.float32)
-    o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
-    settled = {}
-    for isa in (isas()[0], "sse4.2"):
-        cand = embree_cast(lib, isa, raycast.grown(tris), origin, dirs)[2].astype(np.int64)
-        settled[isa] = raycast.settle(mesh.triangles, mesh.bounds, mesh.crowded, *mesh.grid, mesh.pad, cand, o32,
-                                      dirs, np.full(len(dirs), 1e37))
+    dirs = rays_at_edges(tris[near], origin, np.random.default_rng(4), 4000).astype(np.float32)
     best = isas()[0]
+    settled = {isa: out[1] for isa, out in settle_by_isa(_embree(), mesh, origin, dirs, [best, "sse4.2"]).items()}
     np.testing.assert_array_equal(settled[best], settled["sse4.2"])
+    o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
     np.testing.assert_array_equal(settled[best], mesh.first_hits(o32, dirs)["primID"])
