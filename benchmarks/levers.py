@@ -20,7 +20,9 @@ The weight average does not change a training's steps (the network's own weights
 bit for bit, those of one without: ``tests/harness/test_train.py``), so the ``ema`` training gives both rows of a
 draw: the average and the network's own weights, ``none``. Without ``ema`` among the levers, ``none`` is a training
 of its own. Each draw is also scored on the SOTIF frames of each precipitation class (dry, wet, rain) and on the
-cars of each distance bin (a second table); a result file written before these is scored again on its next run.
+cars of each distance bin (a second table). Each row records the content digests of the val and SOTIF sets it was
+scored on; a row scored on other bytes (the sets simulated again by another generator) or before that record is
+scored again on the next run (its first headline kept as ``headline_before``); its training is not redone.
 
 Each training is ``harness.train.train`` on the compact profile (the default run's), one thread; ``--jobs``
 trainings at once. Prints (and writes to ``DIR/levers/table.md``) a Markdown table: model, lever, draws, val mean /
@@ -94,6 +96,13 @@ def _scores(net, run_dir: Path) -> dict:
             "headline_by": {**head["3d_all_by"], **head["3d_all_distance"]}}
 
 
+def _data_digests(run_dir: Path) -> dict:
+    """The content digests of the val and SOTIF sets a draw is scored on (their simulate stages' outputs)."""
+    from harness.stages import Stages
+    stages = Stages(run_dir, progress=False)
+    return {"val": stages.outputs_digest("simulate_val"), "sotif": stages.outputs_digest("simulate_sotif")}
+
+
 def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compact") -> dict:
     """Train (or resume) one draw and score it; ``{lever: scores}``, with ``none`` beside ``ema`` (the same
     training's own weights). Written to ``levers/<model>-<lever>-seed<seed>.json`` and read from there when done."""
@@ -105,16 +114,18 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
     torch.set_num_threads(1)
     name = f"{model}-{lever}-seed{seed}"
     done = run_dir / "levers" / f"{name}.json"
+    data_sets = _data_digests(run_dir)
     if done.is_file():
         out = json.loads(done.read_text())
         ckpt = run_dir / "levers" / name / "checkpoint.pt"
-        for row in [r for r in out["rows"] if r != "ema" and "0-30" not in out["rows"][r].get("headline_by", {})]:
-            # scored before the classes and distance bins were (the average's own row stays as it was)
+        for row in [r for r in out["rows"] if out["rows"][r].get("data") != data_sets]:
+            # scored on other val or SOTIF bytes (another generator), or before the record of them
             net, _ = zoo.load_checkpoint(ckpt)
             if row == "none" and lever == "ema":
                 net.load_state_dict(zoo.read_checkpoint(ckpt)["train_state_dict"])
-            out["rows"][row] = {**_scores(net, run_dir), "seconds": out["rows"][row]["seconds"],
-                                "headline_before": out["rows"][row]["headline"]}
+            old = out["rows"][row]
+            out["rows"][row] = {**_scores(net, run_dir), "seconds": old["seconds"], "data": data_sets,
+                                "headline_before": old.get("headline_before", old["headline"])}
             atomic_write_text(done, json.dumps(out, indent=1))
         return out
     recipe = zoo.resolve(model, profile)
@@ -130,10 +141,10 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
     ckpt = train(recipe, data, run_dir / "levers" / name, epochs=epochs, seed=seed, progress=False)
     state = zoo.read_checkpoint(ckpt)
     net, _ = zoo.load_checkpoint(ckpt)
-    rows = {lever: {**_scores(net, run_dir), "seconds": state["train_seconds"]}}
+    rows = {lever: {**_scores(net, run_dir), "seconds": state["train_seconds"], "data": data_sets}}
     if lever == "ema":
         net.load_state_dict(state["train_state_dict"])
-        rows["none"] = {**_scores(net, run_dir), "seconds": state["train_seconds"]}
+        rows["none"] = {**_scores(net, run_dir), "seconds": state["train_seconds"], "data": data_sets}
     out = {"model": model, "seed": seed, "cpu": torch.cpu.get_capabilities().get("cpu_name"), "rows": rows}
     atomic_write_text(done, json.dumps(out, indent=1))
     return out
