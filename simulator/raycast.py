@@ -104,21 +104,35 @@ def _grid(tris, cell, pad):
 
 
 @numba.njit(cache=True)
-def _crowded(tris, bounds, starts, items, pad):
-    """(T,) bool: a triangle that comes within ``pad`` of one it shares no corner with (bounds that overlap,
-    and neither lies to one side of the other's plane or outside one of its edges by more than pad): one
-    that may cross it or touch it, so that a ray may meet both at one distance."""
-    out = np.zeros(tris.shape[0], np.bool_)
+def _crowding(tris, bounds, box, starts, items, pad):
+    """(T, 2, 3) float64 boxes, each triangle's crowding region: the bounding box, over the triangles q that
+    share no corner with p and come within ``pad`` of it (bounds that overlap, and neither lies to one side
+    of the other's plane or outside one of its edges by more than pad: q may cross p or touch it, so that a
+    ray may meet both at one distance), of p's bounds intersected with q's (``bounds``: grown by pad, as the
+    grid's). Empty (lo = inf, hi = -inf) when none comes near. Each pair is tested once, in the first grid
+    cell that lists both: the triangles' cells are rectangles, so that is (max of the first columns, max of
+    the first rows)."""
+    ny = int(box[3])
+    first = np.full(tris.shape[0], -1, np.int64)  # (T,) each triangle's first cell
+    for c in range(starts.shape[0] - 1):
+        for j in range(starts[c], starts[c + 1]):
+            if first[items[j]] < 0:
+                first[items[j]] = c
+    col, row = first // ny, first % ny
+    region = np.empty_like(bounds)
+    region[:, 0] = np.inf
+    region[:, 1] = -np.inf
+    lo, hi = np.empty(3), np.empty(3)
     for c in range(starts.shape[0] - 1):
         for j in range(starts[c], starts[c + 1]):
             a = items[j]
             for k in range(j + 1, starts[c + 1]):
                 b = items[k]
-                if out[a] and out[b]:
-                    continue
-                if (bounds[a, 1, 0] < bounds[b, 0, 0] or bounds[b, 1, 0] < bounds[a, 0, 0]
-                        or bounds[a, 1, 1] < bounds[b, 0, 1] or bounds[b, 1, 1] < bounds[a, 0, 1]
-                        or bounds[a, 1, 2] < bounds[b, 0, 2] or bounds[b, 1, 2] < bounds[a, 0, 2]):
+                if max(col[a], col[b]) * ny + max(row[a], row[b]) != c:
+                    continue  # tested in an earlier cell
+                for x in range(3):
+                    lo[x], hi[x] = max(bounds[a, 0, x], bounds[b, 0, x]), min(bounds[a, 1, x], bounds[b, 1, x])
+                if lo[0] > hi[0] or lo[1] > hi[1] or lo[2] > hi[2]:
                     continue
                 shared = False
                 for u in range(3):
@@ -127,8 +141,10 @@ def _crowded(tris, bounds, starts, items, pad):
                                 and tris[a, u, 2] == tris[b, v, 2]):
                             shared = True
                 if not shared and not _apart(tris, a, b, pad) and not _apart(tris, b, a, pad):
-                    out[a] = out[b] = True
-    return out
+                    for x in range(3):
+                        region[a, 0, x], region[a, 1, x] = min(region[a, 0, x], lo[x]), max(region[a, 1, x], hi[x])
+                        region[b, 0, x], region[b, 1, x] = min(region[b, 0, x], lo[x]), max(region[b, 1, x], hi[x])
+    return region
 
 
 @numba.njit(cache=True)
@@ -175,7 +191,7 @@ def _apart(tris, a, b, pad):
 
 class Mesh:
     """A triangle soup as the ray caster settles hits on it: the triangles, Embree's scene of them grown
-    by GROW_M, and the triangles near each (x, y) cell of CELL_M metres."""
+    by GROW_M, the triangles near each (x, y) cell of CELL_M metres and each triangle's crowding region."""
 
     def __init__(self, triangles: np.ndarray):
         self.triangles = np.ascontiguousarray(triangles, dtype=np.float32)
@@ -184,7 +200,7 @@ class Mesh:
         self.grid = _grid(self.triangles, CELL_M, self.pad)
         t64 = self.triangles.astype(np.float64)
         self.bounds = np.stack([t64.min(1) - self.pad, t64.max(1) + self.pad], 1)  # (T, 2, 3)
-        self.crowded = _crowded(self.triangles, self.bounds, *self.grid[1:], self.pad)
+        self.region = _crowding(self.triangles, self.bounds, *self.grid, self.pad)  # (T, 2, 3)
 
     def first_hits(self, origins32: np.ndarray, dirs32: np.ndarray, max_t: float | np.ndarray = 1e37) -> dict:
         """Settled first hits up to max_t (a number or per ray): primID (N,) (-1: none), tfar (N,) float32
@@ -193,7 +209,7 @@ class Mesh:
         limit = np.broadcast_to(np.asarray(max_t, np.float64), (n,)).copy()
         # Embree's limit a little beyond the exact one: the limit itself is applied in float64 (settle)
         res = _run(self.embree, origins32, dirs32, (np.minimum(limit, 1e37) * (1 + 1e-5) + 1e-3).astype(np.float32))
-        prim = settle(self.triangles, self.bounds, self.crowded, *self.grid, self.pad, res["primID"].astype(np.int64),
+        prim = settle(self.triangles, self.bounds, self.region, *self.grid, self.pad, res["primID"].astype(np.int64),
                       origins32, dirs32, limit)
         tfar = np.where(prim >= 0, 0.0, np.minimum(limit, 1e37)).astype(np.float32)
         tfar, ng = exact_hits(self.triangles, prim, origins32, dirs32, tfar)
@@ -243,6 +259,13 @@ def _inside(tris, k, hx, hy, hz):
             return -np.inf
         least = min(least, (cx * nx_ + cy * ny_ + cz * nz_) / (length * nn))
     return least
+
+
+@numba.njit(cache=True)
+def _outside(boxes, k, x, y, z):
+    """The point (x, y, z) lies outside box k of ``boxes`` (T, 2, 3) (always, when the box is empty)."""
+    return (x < boxes[k, 0, 0] or x > boxes[k, 1, 0] or y < boxes[k, 0, 1] or y > boxes[k, 1, 1]
+            or z < boxes[k, 0, 2] or z > boxes[k, 1, 2])
 
 
 @numba.njit(cache=True)
@@ -298,15 +321,19 @@ def _walk(tris, bounds, box, starts, items, o, d, t0, limit):
 
 
 @numba.njit(cache=True)
-def settle(tris, bounds, crowded, box, starts, items, pad, prim, origins, dirs, limit):
+def settle(tris, bounds, region, box, starts, items, pad, prim, origins, dirs, limit):
     """Each ray's triangle (N,) (-1: none): the nearest the ray meets in float64 at 0 < t <= limit (ties: the
     lower index), found from Embree's candidate ``prim`` on the grown triangles (-1: none, so none met).
-    When the ray meets the candidate, nothing grown lies in front of it (Embree would have returned that)
-    but a triangle met at the same distance within rounding: the triangles of the grid cell (``_grid``)
-    whose bounds (T, 2, 3, grown by ``pad``) hold the meeting point are tested too, unless the point lies
-    ``pad`` / 2 inside the candidate and no triangle but its neighbours comes near it (``crowded``: a
-    neighbour met at that distance would have to fold back over the candidate). When it passes beside
-    the candidate, the grid is walked from ``pad`` before the candidate's plane (``_walk``)."""
+    When the ray meets the candidate p at h, nothing grown lies in front of it (Embree would have returned
+    that) but a triangle met at the same distance within rounding, whose bounds (T, 2, 3, grown by ``pad``)
+    then hold h: the triangles of h's grid cell (``_grid``) whose bounds hold h are tested too, unless h
+    lies ``pad`` / 2 inside p and outside p's crowding region (``_crowding``). That skip is exact: h lies on
+    p within float64's rounding (about 1e-12 m), far inside p's bounds, so outside the region it lies outside
+    the bounds of every triangle that comes near p but its neighbours (the region's corners are the bounds'
+    own numbers: no margin is needed), and the search would test only neighbours and triangles apart from p.
+    A neighbour met at that distance would have to fold back over p, pad / 2 from its edges; one apart
+    lies more than pad from h. When the ray passes beside p, the grid is walked from ``pad`` before p's plane
+    (``_walk``)."""
     n = prim.shape[0]
     out = np.full(n, -1, np.int32)
     x0, y0, nx, ny, cell = box[0], box[1], int(box[2]), int(box[3]), box[4]
@@ -319,10 +346,10 @@ def settle(tris, bounds, crowded, box, starts, items, pad, prim, origins, dirs, 
             hx = np.float64(origins[i, 0]) + met * np.float64(dirs[i, 0])
             hy = np.float64(origins[i, 1]) + met * np.float64(dirs[i, 1])
             hz = np.float64(origins[i, 2]) + met * np.float64(dirs[i, 2])
-            ix, iy = int((hx - x0) // cell), int((hy - y0) // cell)
             out[i] = p
-            if not crowded[p] and _inside(tris, p, hx, hy, hz) >= 0.5 * pad:
+            if _outside(region, p, hx, hy, hz) and _inside(tris, p, hx, hy, hz) >= 0.5 * pad:
                 continue
+            ix, iy = int((hx - x0) // cell), int((hy - y0) // cell)
             if 0 <= ix < nx and 0 <= iy < ny:
                 out[i] = _cell_nearest(tris, bounds, starts, items, ix * ny + iy, origins[i], dirs[i], True, hx, hy, hz,
                                        limit[i], p, met)[0]

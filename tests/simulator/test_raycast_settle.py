@@ -109,6 +109,53 @@ def test_the_grid_lists_every_triangle_whose_grown_bounds_hold_a_point():
         assert set(want) <= set(listed) and list(listed) == sorted(listed)
 
 
+def crowding_reference(tris: np.ndarray, pad: float) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """Each triangle's crowding region (T, 2, 3) and the pairs (a, b) that come near each other, over every
+    pair by brute force in numpy: bounds grown by pad that overlap, no shared corner, and neither apart
+    (raycast._apart) from the other; the region is the bounding box of p's bounds intersected with q's."""
+    t = tris.astype(np.float64)
+    lo, hi = t.min(1) - pad, t.max(1) + pad
+    a, b = np.triu_indices(len(t), 1)
+    both_lo, both_hi = np.maximum(lo[a], lo[b]), np.minimum(hi[a], hi[b])
+    shared = (t[a][:, :, None] == t[b][:, None]).all(-1).any((1, 2))
+    near = [k for k in np.flatnonzero(np.all(both_lo <= both_hi, 1) & ~shared)
+            if not raycast._apart(tris, a[k], b[k], pad) and not raycast._apart(tris, b[k], a[k], pad)]
+    region = np.stack([np.full(t.shape[:2], np.inf), np.full(t.shape[:2], -np.inf)], 1)
+    for k in near:
+        for p in (a[k], b[k]):
+            region[p, 0], region[p, 1] = np.minimum(region[p, 0], both_lo[k]), np.maximum(region[p, 1], both_hi[k])
+    return region, [(a[k], b[k]) for k in near]
+
+
+@pytest.mark.parametrize("cell", [2.0, 0.7])
+def test_a_point_outside_the_crowding_region_lies_in_no_near_triangles_bounds(cell):
+    rng = np.random.default_rng(5)
+    tris = _soup(rng)
+    pad = 4e-3
+    t = tris.astype(np.float64)
+    bounds = np.stack([t.min(1) - pad, t.max(1) + pad], 1)
+    region = raycast._crowding(tris, bounds, *raycast._grid(tris, cell, pad), pad)
+    want, pairs = crowding_reference(tris, pad)
+    np.testing.assert_array_equal(region, want)
+    empty = np.all(region[:, 0] == np.inf, 1) & np.all(region[:, 1] == -np.inf, 1)
+    assert 0 < empty.sum() < len(tris)  # some triangles have no near one, others have
+    others = {p: [] for p in range(len(tris))}
+    for a, b in pairs:
+        others[a].append(b)
+        others[b].append(a)
+    clear = 0
+    for p in rng.choice(np.flatnonzero(~empty), 100):  # points in p's bounds, many near its region
+        h = rng.uniform(bounds[p, 0], bounds[p, 1], (200, 3))
+        edge = rng.integers(0, 2, (200, 3))
+        h = np.where(rng.uniform(size=(200, 3)) < 0.2, region[p, edge, [0, 1, 2]], h)  # some on its faces
+        outside = np.any((h < region[p, 0]) | (h > region[p, 1]), 1)
+        q = np.array(others[p])
+        held = np.all((bounds[q, None, 0] <= h) & (h <= bounds[q, None, 1]), 2).any(0)
+        assert not (outside & held).any()
+        clear += outside.sum()
+    assert clear > 1000
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_first_hits_equal_a_brute_force_float64_cast(seed):
     rng = np.random.default_rng(seed)
