@@ -33,7 +33,7 @@ from simulator.space import SWEEP_WEATHER, ScenarioSpace, check_space, instances
 from simulator.toolkit_views import write_views
 from simulator.weather import DRY_PRESETS, WEATHER_PRESETS
 
-GENERATOR_VERSION = "1.7"  # bump whenever the same seed gives other bytes
+GENERATOR_VERSION = "1.8"  # bump whenever the same seed gives other bytes
 PRESETS = ("sotif", "train", "sweep", "bounds")
 INSTANCE_PRESETS = ("sweep", "bounds")  # a set of instances under weathers of their own (weather "Sweep")
 LIDAR_MODELS = ("physics", "carla")

@@ -9,9 +9,10 @@ kernels and each vendor's reciprocal estimates). A ray's hit is defined as the n
 in float64 (Moller-Trumbore on the float32 triangles and ray, edges included; ties: the lower index),
 and Embree only proposes a candidate: it casts against the triangles grown by ``GROW_M`` in their planes,
 so a triangle the ray meets is one Embree meets by a margin far above its rounding, on every CPU, and no
-triangle met lies in front of the candidate's plane (``settle``). A ray that meets its candidate is
-settled among it and the triangles near the meeting point (a grid of ``CELL_M`` cells); a ray that
-passes beside it (within GROW_M of an edge) walks the grid from there and tests every triangle it
+triangle met lies in front of the candidate's plane by more than Embree's rounding along the ray
+(``settle``; large only where the ray grazes a triangle). A ray that meets its candidate is settled among
+it and the triangles near the meeting point (a grid of ``CELL_M`` cells); a ray that grazes the candidate
+or passes beside it (within GROW_M of an edge) walks the grid from before it and tests every triangle it
 crosses. Every decision is float64 arithmetic without fused multiply-adds, the same on every x86-64 CPU.
 """
 from __future__ import annotations
@@ -45,6 +46,11 @@ class Hits:
 GROW_M = 1e-3  # metres each triangle grows by for Embree's cast: 10x Embree's rounding over 120 m of float32
 MAX_MOVE_M = 1.0  # and each corner by at most this (the world's and the vehicles' triangles: < 0.5 m)
 CELL_M = 2.0  # the grid of triangles a hit is settled among
+# how far Embree's meeting with a grown triangle's plane may lie off the triangle's float64 plane, in float32 ulps
+# of the magnitude (_planes, _drift; measured: 0.8 at most, 0.3 where the ray meets the plane at |cos| < 0.05)
+DRIFT_ULPS = 2.0
+F32_ULP = 2.0 ** -23  # float32's ulp relative to the magnitude (at most)
+FOLD_DEG = 30.0  # neighbours that fold back over each other to within this angle crowd each other (settle)
 
 
 def _scene(triangles: np.ndarray) -> rtcs.EmbreeScene:
@@ -134,17 +140,39 @@ def _crowding(tris, bounds, box, starts, items, pad):
                     lo[x], hi[x] = max(bounds[a, 0, x], bounds[b, 0, x]), min(bounds[a, 1, x], bounds[b, 1, x])
                 if lo[0] > hi[0] or lo[1] > hi[1] or lo[2] > hi[2]:
                     continue
-                shared = False
-                for u in range(3):
-                    for v in range(3):
-                        if (tris[a, u, 0] == tris[b, v, 0] and tris[a, u, 1] == tris[b, v, 1]
-                                and tris[a, u, 2] == tris[b, v, 2]):
-                            shared = True
-                if not shared and not _apart(tris, a, b, pad) and not _apart(tris, b, a, pad):
+                if not _neighbours(tris, a, b) and not _apart(tris, a, b, pad) and not _apart(tris, b, a, pad):
                     for x in range(3):
                         region[a, 0, x], region[a, 1, x] = min(region[a, 0, x], lo[x]), max(region[a, 1, x], hi[x])
                         region[b, 0, x], region[b, 1, x] = min(region[b, 0, x], lo[x]), max(region[b, 1, x], hi[x])
     return region
+
+
+@numba.njit(cache=True)
+def _neighbours(tris, a, b):
+    """Triangles a and b share one corner, or two and open at that edge by more than ``FOLD_DEG`` (the angle
+    between their half-planes; less, they fold back over each other, as the two sides of a double-sided face)."""
+    mine, theirs, n = np.zeros(3, np.bool_), np.zeros(3, np.bool_), 0
+    for u in range(3):
+        for v in range(3):
+            if tris[a, u, 0] == tris[b, v, 0] and tris[a, u, 1] == tris[b, v, 1] and tris[a, u, 2] == tris[b, v, 2]:
+                mine[u], theirs[v], n = True, True, n + 1
+    if n != 2:
+        return n == 1
+    s = 0 if mine[0] else 1  # a shared corner, the other one e, and each triangle's own corner
+    e = 2 if mine[2] else 1
+    own_a, own_b = np.argmin(mine), np.argmin(theirs)
+    lx, ly, lz = (np.float64(tris[a, e, 0]) - np.float64(tris[a, s, 0]), np.float64(tris[a, e, 1])
+                  - np.float64(tris[a, s, 1]), np.float64(tris[a, e, 2]) - np.float64(tris[a, s, 2]))
+    ll = lx * lx + ly * ly + lz * lz
+    across = np.zeros((2, 3))  # each own corner's offset from the edge's line
+    for r, (k, c) in enumerate(((a, own_a), (b, own_b))):
+        px, py, pz = (np.float64(tris[k, c, 0]) - np.float64(tris[a, s, 0]), np.float64(tris[k, c, 1])
+                      - np.float64(tris[a, s, 1]), np.float64(tris[k, c, 2]) - np.float64(tris[a, s, 2]))
+        f = (px * lx + py * ly + pz * lz) / ll
+        across[r, 0], across[r, 1], across[r, 2] = px - f * lx, py - f * ly, pz - f * lz
+    dot = across[0, 0] * across[1, 0] + across[0, 1] * across[1, 1] + across[0, 2] * across[1, 2]
+    lengths = np.sqrt((across[0] ** 2).sum() * (across[1] ** 2).sum())
+    return dot <= np.cos(np.radians(FOLD_DEG)) * lengths
 
 
 @numba.njit(cache=True)
@@ -189,13 +217,58 @@ def _apart(tris, a, b, pad):
     return False
 
 
+@numba.njit(cache=True)
+def _planes(tris, big):
+    """(T, 4) float64: each triangle's unit normal and how far off its plane Embree's float32 plane of its grown
+    copy (``big``, float32) may lie per float32 ulp of magnitude (metres): the grown corners' largest coordinate
+    (their rounding, and Embree's differences from the ray's origin) plus the length over which the rounding of
+    Embree's float32 normal (e1 x e2, e = v - v0: each component off by an ulp of |e1_y e2_z| + |e1_z e2_y|,
+    ...) tilts the plane about v0 (long for slivers). Degenerate triangles: a zero normal, an infinite length."""
+    out = np.zeros((tris.shape[0], 4))
+    for k in range(tris.shape[0]):
+        nx, ny, nz = _normal(tris, k)
+        nn = np.sqrt(nx * nx + ny * ny + nz * nz)
+        gx, gy, gz = _normal(big, k)
+        gn = np.sqrt(gx * gx + gy * gy + gz * gz)
+        if nn == 0.0 or gn == 0.0:
+            out[k, 3] = np.inf
+            continue
+        mag = 0.0
+        e1, e2 = np.empty(3), np.empty(3)
+        for a in range(3):
+            mag = max(mag, abs(np.float64(big[k, 0, a])), abs(np.float64(big[k, 1, a])), abs(np.float64(big[k, 2, a])))
+            e1[a] = abs(np.float64(big[k, 1, a]) - np.float64(big[k, 0, a]))
+            e2[a] = abs(np.float64(big[k, 2, a]) - np.float64(big[k, 0, a]))
+        tilt = 0.0  # |rounding of the normal's components| / ulp: |a_y b_z| + |a_z b_y|, ...
+        for a in range(3):
+            b, c = (a + 1) % 3, (a + 2) % 3
+            tilt += (e1[b] * e2[c] + e1[c] * e2[b]) ** 2
+        longest = np.sqrt(max(e1[0] ** 2 + e1[1] ** 2 + e1[2] ** 2, e2[0] ** 2 + e2[1] ** 2 + e2[2] ** 2))
+        out[k, 0], out[k, 1], out[k, 2], out[k, 3] = nx / nn, ny / nn, nz / nn, mag + np.sqrt(tilt) * longest / gn
+    return out
+
+
+@numba.njit(cache=True)
+def _drift(planes, k, d, t):
+    """How far along the ray o + t d (t: where it meets triangle k's plane, nan: parallel) Embree's meeting with
+    k's grown copy may lie from t: DRIFT_ULPS float32 ulps of the magnitude (``_planes``' length for k plus t)
+    over |cos| between the ray and k's normal (inf: the ray runs in the plane)."""
+    dx, dy, dz = np.float64(d[0]), np.float64(d[1]), np.float64(d[2])
+    along = abs(dx * planes[k, 0] + dy * planes[k, 1] + dz * planes[k, 2])
+    if not along > 0.0 or t != t:
+        return np.inf
+    return DRIFT_ULPS * F32_ULP * (planes[k, 3] + abs(t)) * np.sqrt(dx * dx + dy * dy + dz * dz) / along
+
+
 class Mesh:
     """A triangle soup as the ray caster settles hits on it: the triangles, Embree's scene of them grown
     by GROW_M, the triangles near each (x, y) cell of CELL_M metres and each triangle's crowding region."""
 
     def __init__(self, triangles: np.ndarray):
         self.triangles = np.ascontiguousarray(triangles, dtype=np.float32)
-        self.embree = _scene(grown(self.triangles, GROW_M))
+        big = grown(self.triangles, GROW_M)
+        self.embree = _scene(big)
+        self.planes = _planes(self.triangles, big)  # (T, 4) unit normals and lengths for Embree's rounding
         self.pad = 4.0 * GROW_M  # how near the point where the ray meets a candidate's plane others are sought
         self.grid = _grid(self.triangles, CELL_M, self.pad)
         t64 = self.triangles.astype(np.float64)
@@ -207,10 +280,12 @@ class Mesh:
         and Ng (N, 3) float32 recomputed from the triangle (exact_hits; tfar stays max_t on a miss)."""
         n = len(dirs32)
         limit = np.broadcast_to(np.asarray(max_t, np.float64), (n,)).copy()
-        # Embree's limit a little beyond the exact one: the limit itself is applied in float64 (settle)
-        res = _run(self.embree, origins32, dirs32, (np.minimum(limit, 1e37) * (1 + 1e-5) + 1e-3).astype(np.float32))
-        prim = settle(self.triangles, self.bounds, self.region, *self.grid, self.pad, res["primID"].astype(np.int64),
-                      origins32, dirs32, limit)
+        # Embree's limit beyond the exact one by more than a settled drift (pad / 2): the limit itself is applied
+        # in float64 (settle)
+        res = _run(self.embree, origins32, dirs32,
+                   (np.minimum(limit, 1e37) * (1 + 1e-5) + self.pad).astype(np.float32))
+        prim = settle(self.triangles, self.planes, self.bounds, self.region, *self.grid, self.pad,
+                      res["primID"].astype(np.int64), origins32, dirs32, limit)
         tfar = np.where(prim >= 0, 0.0, np.minimum(limit, 1e37)).astype(np.float32)
         tfar, ng = exact_hits(self.triangles, prim, origins32, dirs32, tfar)
         return {"primID": prim, "tfar": tfar, "Ng": ng}
@@ -321,19 +396,34 @@ def _walk(tris, bounds, box, starts, items, o, d, t0, limit):
 
 
 @numba.njit(cache=True)
-def settle(tris, bounds, region, box, starts, items, pad, prim, origins, dirs, limit):
+def settle(tris, planes, bounds, region, box, starts, items, pad, prim, origins, dirs, limit):
     """Each ray's triangle (N,) (-1: none): the nearest the ray meets in float64 at 0 < t <= limit (ties: the
     lower index), found from Embree's candidate ``prim`` on the grown triangles (-1: none, so none met).
-    When the ray meets the candidate p at h, nothing grown lies in front of it (Embree would have returned
-    that) but a triangle met at the same distance within rounding, whose bounds (T, 2, 3, grown by ``pad``)
-    then hold h: the triangles of h's grid cell (``_grid``) whose bounds hold h are tested too, unless h
-    lies ``pad`` / 2 inside p and outside p's crowding region (``_crowding``). That skip is exact: h lies on
-    p within float64's rounding (about 1e-12 m), far inside p's bounds, so outside the region it lies outside
-    the bounds of every triangle that comes near p but its neighbours (the region's corners are the bounds'
-    own numbers: no margin is needed), and the search would test only neighbours and triangles apart from p.
-    A neighbour met at that distance would have to fold back over p, pad / 2 from its edges; one apart
-    lies more than pad from h. When the ray passes beside p, the grid is walked from ``pad`` before p's plane
-    (``_walk``)."""
+
+    Embree's float32 meeting with a grown triangle k lies within drift_k of the ray's float64 meeting with k's
+    plane (``_drift``: DRIFT_ULPS float32 ulps of the magnitude over |cos| between ray and normal; 1e-4 m
+    head-on 300 m out, 0.1 m at |cos| 1e-3), and its error across the triangle is as large. So Embree meets
+    every triangle met with a drift below the 2 mm it is grown by, and returns p although q is met in front
+    of it only when q is met within drift_p + drift_q before p's plane. With both at most pad / 2:
+
+    - the ray meets p at h (drift_p <= pad / 2): q is met within pad of h, so its bounds (T, 2, 3, grown by
+      ``pad``) hold h, and the triangles of h's grid cell (``_grid``) whose bounds hold h are tested too,
+      unless h lies r >= max(pad / 2, 4 drift_p) inside p and outside p's crowding region (``_crowding``).
+      That skip is exact: outside the region h lies outside the bounds of every triangle that comes within
+      pad of p but p's neighbours (the region's corners are the bounds' own numbers), and one that does not
+      is met more than pad from h. A neighbour across an edge at an angle a to p meets the ray r sin(a) /
+      |cos_q| before h: more than drift_p + drift_q for a from 30 to 150 degrees (r sin(a) >= 2 drift_p and
+      >= 1 mm, far above float32's rounding across q's plane); a flatter one lies r from h, so the ray would
+      have to graze it 3 times more than p, which a plane within 30 degrees of p's allows only where q's
+      rounding is over twice p's (a sliver beside a large triangle); a sharper one makes the pair crowd each
+      other (``_neighbours``: the two sides of a double-sided sign); one sharing a corner would have to
+      reach over p's inside;
+    - the ray grazes p (drift_p > pad / 2) or passes beside it: the grid is walked (``_walk``) from
+      pad + drift_p before p's plane.
+
+    Not covered: a ray that meets its nearest triangle with a drift over pad / 2 (|cos| below 0.036 where
+    the magnitude and the distance add up to 300 m; 0.005 for the rounding measured), which Embree may miss
+    near an open edge or order behind a steeper triangle."""
     n = prim.shape[0]
     out = np.full(n, -1, np.int32)
     x0, y0, nx, ny, cell = box[0], box[1], int(box[2]), int(box[3]), box[4]
@@ -342,20 +432,21 @@ def settle(tris, bounds, region, box, starts, items, pad, prim, origins, dirs, l
         if p < 0:
             continue  # nothing within GROW_M of the ray: a miss
         met, t = _meet(tris, p, origins[i], dirs[i])
-        if met > 0.0 and met <= limit[i]:
+        drift = _drift(planes, p, dirs[i], t)
+        if met > 0.0 and met <= limit[i] and drift <= 0.5 * pad:
             hx = np.float64(origins[i, 0]) + met * np.float64(dirs[i, 0])
             hy = np.float64(origins[i, 1]) + met * np.float64(dirs[i, 1])
             hz = np.float64(origins[i, 2]) + met * np.float64(dirs[i, 2])
             out[i] = p
-            if _outside(region, p, hx, hy, hz) and _inside(tris, p, hx, hy, hz) >= 0.5 * pad:
+            if _outside(region, p, hx, hy, hz) and _inside(tris, p, hx, hy, hz) >= max(0.5 * pad, 4.0 * drift):
                 continue
             ix, iy = int((hx - x0) // cell), int((hy - y0) // cell)
             if 0 <= ix < nx and 0 <= iy < ny:
                 out[i] = _cell_nearest(tris, bounds, starts, items, ix * ny + iy, origins[i], dirs[i], True, hx, hy, hz,
                                        limit[i], p, met)[0]
-        elif not (t > limit[i] + pad):
+        elif not (t - drift > limit[i] + pad):  # (t nan: the ray runs in p's plane)
             out[i] = _walk(tris, bounds, box, starts, items, origins[i], dirs[i],
-                           max(t - pad, 0.0) if t == t else 0.0, limit[i])
+                           max(t - pad - drift, 0.0) if t == t else 0.0, limit[i])
     return out
 
 

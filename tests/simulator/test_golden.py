@@ -1,5 +1,5 @@
 """The study's set and the training set keep their bytes on every CPU: per-file SHA-256 digests of two small
-data sets, made before the scenario space existed (tests/simulator/data/golden_digests.json; generator 1.7,
+data sets, made before the scenario space existed (tests/simulator/data/golden_digests.json; generator 1.8,
 made on an AMD EPYC with AVX2). The ray caster settles every hit in float64 itself (simulator/raycast.py), so
 Embree's CPU-dependent rounding does not reach the files (tests/simulator/test_raycast_settle.py makes Embree
 propose otherwise, as another CPU's kernels would); docs/simulator.md, "The same bytes on every CPU"."""

@@ -8,6 +8,9 @@ import pytest
 import simulator.raycast as raycast
 from benchmarks.isa_check import _embree, isas, rays_at_edges, settle_by_isa
 from simulator import generate
+from simulator.frame import WORLD_TAG
+from simulator.road import RoadConfig
+from simulator.world import World, build_world
 from tests.simulator.test_golden import digests
 
 
@@ -40,7 +43,8 @@ def brute_force(tris: np.ndarray, origins: np.ndarray, dirs: np.ndarray, limit: 
 
 def _soup(rng: np.random.Generator) -> np.ndarray:
     """Triangles that share edges and vertices, cross and touch: a bumpy height field of 2 m cells, boxes
-    standing on it and sunk into it, and thin slanted plates leaning on the boxes."""
+    standing on it and sunk into it, thin slanted plates leaning on the boxes, and double-sided signs (a quad
+    split along both diagonals: triangles that share an edge and lie on each other)."""
     n = 12
     x, y = np.meshgrid(np.arange(n + 1) * 2.0, np.arange(n + 1) * 2.0, indexing="ij")
     z = rng.uniform(-0.2, 0.2, x.shape)
@@ -59,6 +63,10 @@ def _soup(rng: np.random.Generator) -> np.ndarray:
             faces += [(a, b, top[(k + 1) % 4]), (a, top[(k + 1) % 4], top[k])]
         tris += faces
         tris.append((top[0], top[1] + [0.3, 0.0, 0.8], top[2]))  # a plate leaning on the box's top edge
+    for _ in range(3):
+        a, b, c, d = np.r_[rng.uniform(2, 20, 2), 1.0] + rng.uniform(0, 1.5) * np.array(
+            [[0, 0, 0], [1, 0.3, 0], [1, 0.3, 0.6], [0, 0, 0.6]])
+        tris += [(a, b, c), (a, c, d), (a, b, d), (b, c, d)]
     return np.array(tris, np.float32)
 
 
@@ -109,17 +117,28 @@ def test_the_grid_lists_every_triangle_whose_grown_bounds_hold_a_point():
         assert set(want) <= set(listed) and list(listed) == sorted(listed)
 
 
+def neighbours(t: np.ndarray, a: int, b: int) -> bool:
+    """Triangles a and b of t (T, 3, 3) share one corner, or two and open at that edge by 30 degrees or more."""
+    same = (t[a][:, None] == t[b][None]).all(-1)  # (3, 3) corner u of a is corner v of b
+    if same.sum() != 2:
+        return same.sum() == 1
+    s, e = t[a][same.any(1)]
+    line = (e - s) / np.linalg.norm(e - s)
+    across = [c - s - line * ((c - s) @ line) for c in (t[a][~same.any(1)][0], t[b][~same.any(0)][0])]
+    return across[0] @ across[1] <= np.cos(np.radians(30)) * np.linalg.norm(across[0]) * np.linalg.norm(across[1])
+
+
 def crowding_reference(tris: np.ndarray, pad: float) -> tuple[np.ndarray, list[tuple[int, int]]]:
     """Each triangle's crowding region (T, 2, 3) and the pairs (a, b) that come near each other, over every
-    pair by brute force in numpy: bounds grown by pad that overlap, no shared corner, and neither apart
-    (raycast._apart) from the other; the region is the bounding box of p's bounds intersected with q's."""
+    pair by brute force in numpy: bounds grown by pad that overlap, not neighbours (one shared corner, or an
+    edge they open at by 30 degrees or more), and neither apart (raycast._apart) from the other; the region is
+    the bounding box of p's bounds intersected with q's."""
     t = tris.astype(np.float64)
     lo, hi = t.min(1) - pad, t.max(1) + pad
     a, b = np.triu_indices(len(t), 1)
     both_lo, both_hi = np.maximum(lo[a], lo[b]), np.minimum(hi[a], hi[b])
-    shared = (t[a][:, :, None] == t[b][:, None]).all(-1).any((1, 2))
-    near = [k for k in np.flatnonzero(np.all(both_lo <= both_hi, 1) & ~shared)
-            if not raycast._apart(tris, a[k], b[k], pad) and not raycast._apart(tris, b[k], a[k], pad)]
+    near = [k for k in np.flatnonzero(np.all(both_lo <= both_hi, 1)) if not neighbours(t, a[k], b[k])
+            and not raycast._apart(tris, a[k], b[k], pad) and not raycast._apart(tris, b[k], a[k], pad)]
     region = np.stack([np.full(t.shape[:2], np.inf), np.full(t.shape[:2], -np.inf)], 1)
     for k in near:
         for p in (a[k], b[k]):
@@ -197,6 +216,113 @@ def other_embree(how: str, monkeypatch) -> None:
         monkeypatch.setattr(raycast, "_run", _shaken(raycast._run, np.random.default_rng(7)))
     else:
         monkeypatch.setattr(raycast, "GROW_M", 1.7e-3)
+
+
+def _corners_moved(grown, rng):
+    """``grown`` (raycast's growing of the triangles for Embree) with each float32 corner coordinate moved by up
+    to 2 ulp, as other rounding in the growing would move it."""
+    def moved(triangles, *args):
+        big = grown(triangles, *args)
+        return (big + rng.integers(-2, 3, big.shape).astype(np.float32) * np.spacing(big)).astype(np.float32)
+    return moved
+
+
+def _settle_as(mesh: raycast.Mesh, candidates: np.ndarray, o32: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """raycast.settle on the mesh with these candidates (N,) from Embree, no limit."""
+    return raycast.settle(mesh.triangles, mesh.planes, mesh.bounds, mesh.region, *mesh.grid, mesh.pad,
+                          candidates.astype(np.int64), o32, dirs, np.full(len(dirs), 1e37))
+
+
+def test_a_ray_that_grazes_its_candidate_settles_on_the_triangle_met_in_front():
+    """A wall and a floor sloping away behind it share an edge 200 m out; the ray passes 3 um below the edge,
+    meets the wall, and meets the floor 3 mm further on, 3 mm inside it, at |cos| 1e-3: Embree's float32
+    meeting with the floor's grown copy may lie 3 mm nearer (it did on some CPU for such a pair in the training
+    world), and the floor proposed must settle on the wall."""
+    tris = np.array([[(200, -1, 0), (200, 1, 0), (200, 0, -2)],  # the wall
+                     [(200, 1, 0), (200, -1, 0), (202, 0, -0.007)]], np.float32)  # the floor
+    o32 = np.array([[0, 0, 0.5]], np.float32)
+    d = np.array([200, 0.3, -0.5 - 3e-6])
+    dirs = (d / np.linalg.norm(d)).astype(np.float32)[None]
+    mesh = raycast.Mesh(tris)
+    wall, floor = raycast._meet(tris, 0, o32[0], dirs[0])[0], raycast._meet(tris, 1, o32[0], dirs[0])[0]
+    assert 2e-3 < floor - wall < 4e-3 and raycast._drift(mesh.planes, 1, dirs[0], floor) > floor - wall
+    assert list(brute_force(tris, o32, dirs)) == [0]
+    for candidate in (0, 1):
+        assert list(_settle_as(mesh, np.array([candidate]), o32, dirs)) == [0]
+    assert list(mesh.first_hits(o32, dirs)["primID"]) == [0]
+
+
+def test_the_grazing_ray_found_in_the_training_world_settles_on_the_brute_force_triangle():
+    """Training world variant 0 (seed 0), from (100, 3, 1.73): rays_at_edges' ray 17694 meets triangle 74157 at
+    |cos| 8.7e-4 and its neighbour 74159 2.7 mm nearer; Embree proposed 74157 on this CPU."""
+    tris = build_world(RoadConfig(), np.random.default_rng([0, WORLD_TAG["train"], 0])).triangles
+    origin = np.array([100, 3, 1.73])
+    near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
+    dirs = rays_at_edges(tris[near], origin, np.random.default_rng(1), 40000)[17694:17695].astype(np.float32)
+    o32 = origin.astype(np.float32)[None]
+    mesh = raycast.Mesh(tris)
+    assert list(brute_force(tris, o32, dirs)) == [74159]
+    assert list(_settle_as(mesh, np.array([74157]), o32, dirs)) == [74159]
+    assert list(mesh.first_hits(o32, dirs)["primID"]) == [74159]
+
+
+def grazing_pairs(rng: np.random.Generator, pairs: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Folded pairs of triangles 100-300 m from an origin near (0, 0, 1.7), each sharing an edge across the line
+    of sight: the first nearly edge-on to the origin (its plane 1e-5 to 0.03 rad off the line of sight,
+    reaching towards the origin or away), the second at a random fold; and n rays at points up to 3 cm off the
+    shared edges on either triangle. Returns the origin (3,), the triangles (2 pairs, 3, 3) and unit rays
+    (n, 3), float32."""
+    origin = np.r_[rng.uniform(-50, 50, 2), 1.7]
+    tris, aims = [], []
+    for _ in range(pairs):
+        az = rng.uniform(0, 2 * np.pi)
+        centre = origin + rng.uniform(100, 300) * np.r_[np.cos(az), np.sin(az), rng.uniform(-0.02, 0.02)]
+        sight = (centre - origin) / np.linalg.norm(centre - origin)
+        edge = np.cross(sight, rng.normal(size=3))
+        edge /= np.linalg.norm(edge)
+        tilt = 10 ** rng.uniform(-5, -1.5)
+        first = np.cos(tilt) * sight * rng.choice([-1, 1]) + np.sin(tilt) * np.cross(edge, sight)
+        fold = rng.uniform(0.02, 2 * np.pi - 0.02)
+        second = np.cos(fold) * first + np.sin(fold) * np.cross(edge, first)
+        half = rng.uniform(0.3, 1.5)
+        tris += [(centre - half * edge, centre + half * edge, centre + rng.uniform(0.3, 2) * first),
+                 (centre + half * edge, centre - half * edge, centre + rng.uniform(0.3, 2) * second)]
+        aims.append((centre, edge, half, first, second))
+    centre, edge, half, first, second = (np.array(x) for x in zip(*aims))
+    k = rng.integers(0, pairs, n)
+    side = np.where(rng.uniform(size=(n, 1)) < 0.5, first[k], second[k])
+    off = 10 ** rng.uniform(-5, -1.5, n) * rng.choice([1, 1, -1], n)  # mostly onto the triangle
+    pts = centre[k] + edge[k] * (rng.uniform(-0.9, 0.9, n) * half[k])[:, None] + side * off[:, None]
+    dirs = pts - origin
+    return (origin.astype(np.float32), np.array(tris, np.float32),
+            (dirs / np.linalg.norm(dirs, axis=1, keepdims=True)).astype(np.float32))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rays_that_graze_triangles_far_out_settle_on_the_brute_force_triangle(seed, monkeypatch):
+    """Rays nearly parallel to triangles 100-300 m out, at their shared edges, where float32 moves Embree's
+    meeting points by millimetres along the ray: settled with Embree as it is, with the rays shaken and with the
+    grown corners moved, every ray whose own triangle it meets with a drift up to pad / 2 (settle's docstring;
+    the others Embree may miss) settles on the brute-force triangle, and the shadow test agrees."""
+    rng = np.random.default_rng(seed)
+    origin, tris, dirs = grazing_pairs(rng, 40, 3000)
+    o32 = np.ascontiguousarray(np.broadcast_to(origin, dirs.shape))
+    want = brute_force(tris, o32, dirs)
+    mesh = raycast.Mesh(tris)
+    drift = np.array([raycast._drift(mesh.planes, k, d, raycast._meet(tris, k, origin, d)[0]) if k >= 0 else 0.0
+                      for k, d in zip(want, dirs)])
+    covered = drift <= mesh.pad / 2
+    assert (want[covered] >= 0).sum() > 1000
+    for how in ("as it is", "shaken", "corners moved"):
+        if how == "shaken":
+            monkeypatch.setattr(raycast, "_run", _shaken(raycast._run, rng))
+        elif how == "corners moved":
+            monkeypatch.undo()
+            monkeypatch.setattr(raycast, "grown", _corners_moved(raycast.grown, rng))
+        got = raycast.Mesh(tris).first_hits(o32, dirs)["primID"]
+        np.testing.assert_array_equal(got[covered], want[covered])
+    lit = raycast.RayScene(World(tris, np.zeros(len(tris), np.uint8), RoadConfig())).occluded(origin, dirs)
+    np.testing.assert_array_equal(lit[covered], want[covered] >= 0)
 
 
 @pytest.mark.parametrize("how", OTHER)
