@@ -242,9 +242,9 @@ def test_cached_export_of_a_model_equals_its_fresh_export(tmp_path, name):
                     buf.uniform_(0.5, 1.5)
         return net
 
-    cache = graph_cache.cache_dir()
-    if graph_cache.load(graph_cache.cache_key(model(0), OPSET), model(0)) is None:
-        _export_lines(model(0), tmp_path / "a.onnx", cache)
+    cache, first = graph_cache.cache_dir(), model(0)
+    if graph_cache.load(graph_cache.cache_key(first, OPSET), first) is None:
+        _export_lines(first, tmp_path / "a.onnx", cache)
     assert "from the cache" in _export_lines(model(1), tmp_path / "warm.onnx", cache)[0]
     _export_lines(model(1), tmp_path / "fresh.onnx", "off")
     assert (tmp_path / "warm.onnx").read_bytes() == (tmp_path / "fresh.onnx").read_bytes()
