@@ -57,7 +57,7 @@ def _embree():
 
 
 def ulp_noise(run, rng: np.random.Generator):
-    """``run`` (raycast's Embree call) with its tfar moved by up to 4 ulp and Ng by up to 1e-6 relative, as
+    """``run`` (the settling's Embree call) with its tfar moved by up to 4 ulp and Ng by up to 1e-6 relative, as
     other SIMD kernels give them."""
     def noisy(scene, origins, dirs, max_t=1e37):
         res = run(scene, origins, dirs, max_t)
@@ -131,29 +131,29 @@ def rays_at_edges(tris: np.ndarray, origin: np.ndarray, rng: np.random.Generator
 
 def settle_by_isa(lib, mesh, origin: np.ndarray, dirs: np.ndarray, isas_: list[str]) -> dict:
     """{isa: (Embree's own triangle, the settled one)} per ray (float32 unit dirs from origin), Embree pinned to
-    each ISA: its own cast of the mesh's triangles, and its candidates on the grown ones settled (raycast.settle)."""
-    import simulator.raycast as rc
+    each ISA: its own cast of the mesh's triangles, and its candidates on the grown ones settled (settling.settle)."""
+    import simulator.settling as settling
     o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
     out = {}
     for isa in isas_:
         raw = embree_cast(lib, isa, mesh.triangles, origin, dirs)[2]
-        cand = embree_cast(lib, isa, rc.grown(mesh.triangles), origin, dirs)[2].astype(np.int64)
-        out[isa] = raw, rc.settle(mesh.triangles, mesh.planes, mesh.bounds, mesh.region, *mesh.grid, mesh.pad, cand,
+        cand = embree_cast(lib, isa, settling.grown(mesh.triangles), origin, dirs)[2].astype(np.int64)
+        out[isa] = raw, settling.settle(mesh.triangles, mesh.planes, mesh.bounds, mesh.region, *mesh.grid, mesh.pad, cand,
                                   o32, dirs, np.full(len(dirs), 1e37))
     return out
 
 
 def settled_by_isa(n: int = 20000) -> None:
-    """The settled triangle (raycast.settle on the candidates of Embree pinned to each ISA, on the grown
+    """The settled triangle (settling.settle on the candidates of Embree pinned to each ISA, on the grown
     triangles) against Embree's own answer, for rays aimed at the highway's vertices and edges."""
-    import simulator.raycast as rc
+    import simulator.settling as settling
     from simulator.road import RoadConfig
     from simulator.world import build_world
     tris = build_world(RoadConfig(), np.random.default_rng(0)).triangles
     origin = np.array([300.0, -5.0, 1.9])
     near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
     dirs = rays_at_edges(tris[near], origin, np.random.default_rng(3), n).astype(np.float32)
-    out = settle_by_isa(_embree(), rc.Mesh(tris), origin, dirs, isas())
+    out = settle_by_isa(_embree(), settling.Mesh(tris), origin, dirs, isas())
     best = next(iter(out))
     print(f"1b. Settled hits by ISA: {n} rays aimed at the highway's vertices and edges")
     for isa, (raw, settled) in out.items():
@@ -180,11 +180,11 @@ def fma_in_numba() -> None:
 
 def golden_as(cpu: str) -> None:
     code = ("import json, sys, tempfile; from pathlib import Path; import numpy as np\n"
-            "import simulator.raycast as rc\n"
+            "import simulator.settling as settling\n"
             "from tests.simulator.test_golden import CASES, GOLDEN, digests\n"
             "from simulator import generate\n"
             "from benchmarks.isa_check import ulp_noise\n"
-            "rc._run = ulp_noise(rc._run, np.random.default_rng(7))\n"
+            "settling.embree_cast = ulp_noise(settling.embree_cast, np.random.default_rng(7))\n"
             "for name, kw in sorted(CASES.items()):\n"
             "    kw = dict(kw, **({'instances': 1} if kw['preset'] == 'sotif' else {}))\n"
             "    got = digests(generate(Path(tempfile.mkdtemp()) / name, progress=False, **kw))\n"

@@ -2,13 +2,14 @@
 
 Embree's kernels differ by ISA (SSE, AVX2, AVX-512) and by CPU vendor in the last bits of tfar and Ng, and
 for rays that pass within rounding of an edge in the triangle hit. The ray caster keeps none of it: it
-settles the triangle and recomputes distance and normal itself in float64 (raycast.settle, exact_hits;
+settles the triangle and recomputes distance and normal itself in float64 (settling.settle, exact_hits;
 tests/simulator/test_raycast_settle.py moves the rays Embree sees), so a data set made from Embree output
 perturbed by a few ulp, as another CPU's kernels would give it, is byte-identical."""
 import numpy as np
 import pytest
 
 import simulator.raycast as raycast
+import simulator.settling as settling
 from benchmarks.isa_check import ulp_noise
 from simulator import generate
 from tests.simulator.test_golden import digests
@@ -30,7 +31,7 @@ def test_exact_hits_against_a_linear_solve():
     d = centroid - origins
     dirs = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
     tfar = np.full(400, 7.0, np.float32)
-    t, ng = raycast.exact_hits(tris, prim, origins, dirs, tfar)
+    t, ng = settling.exact_hits(tris, prim, origins, dirs, tfar)
     for i in range(400):
         if prim[i] < 0:
             assert t[i] == 7.0 and not ng[i].any()
@@ -60,7 +61,7 @@ def test_cast_agrees_with_embree_away_from_edges(highway_scene):
 @pytest.fixture
 def ulp_noise_embree(monkeypatch):
     """Embree's tfar moved by up to 4 ulp and Ng by 1e-6 relative, as other SIMD kernels give them."""
-    monkeypatch.setattr(raycast, "_run", ulp_noise(raycast._run, np.random.default_rng(123)))
+    monkeypatch.setattr(settling, "embree_cast", ulp_noise(settling.embree_cast, np.random.default_rng(123)))
 
 
 @pytest.mark.parametrize("kwargs", [dict(preset="train", frames=2, seed=5),

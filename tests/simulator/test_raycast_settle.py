@@ -1,4 +1,4 @@
-"""The ray caster settles each hit itself (simulator/raycast.py): a ray's hit is the nearest triangle it meets in
+"""The ray caster settles each hit itself (simulator/settling.py): a ray's hit is the nearest triangle it meets in
 float64, ties to the lower index, whatever Embree proposed. Checked against a brute-force numpy cast, and by
 making Embree's proposals differ (rays moved by a few ulp on their way to Embree, triangles grown by another
 margin) as another CPU's kernels would: the settled hits and the data set's bytes must not move."""
@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import simulator.raycast as raycast
+import simulator.settling as settling
 from benchmarks.isa_check import _embree, isas, rays_at_edges, settle_by_isa
 from simulator import generate
 from simulator.frame import WORLD_TAG
@@ -78,7 +79,7 @@ def test_grown_triangles_hold_the_original_and_move_each_edge_out_by_at_least_tw
     off = np.cross(tris[:20, 1] - tris[:20, 0], rng.normal(size=(20, 3)))
     tris[:20, 2] = mid + 5e-5 * off / np.linalg.norm(off, axis=1, keepdims=True)
     tris = tris.astype(np.float32)
-    big = raycast.grown(tris, 1e-3, 1.0).astype(np.float64)
+    big = settling.grown(tris, 1e-3, 1.0).astype(np.float64)
     t = tris.astype(np.float64)
     for k in range(len(t)):
         n = np.cross(t[k, 1] - t[k, 0], t[k, 2] - t[k, 0])
@@ -104,7 +105,7 @@ def test_grown_triangles_hold_the_original_and_move_each_edge_out_by_at_least_tw
 def test_the_grid_lists_every_triangle_whose_grown_bounds_hold_a_point():
     rng = np.random.default_rng(1)
     tris = _soup(rng)
-    box, starts, items = raycast._grid(tris, 2.0, 4e-3)
+    box, starts, items = settling._grid(tris, 2.0, 4e-3)
     lo, hi = tris.min(1) - 4e-3, tris.max(1) + 4e-3
     for p in rng.uniform([-1, -1], [25, 25], (500, 2)):
         ix, iy = int((p[0] - box[0]) // 2.0), int((p[1] - box[1]) // 2.0)
@@ -131,14 +132,14 @@ def neighbours(t: np.ndarray, a: int, b: int) -> bool:
 def crowding_reference(tris: np.ndarray, pad: float) -> tuple[np.ndarray, list[tuple[int, int]]]:
     """Each triangle's crowding region (T, 2, 3) and the pairs (a, b) that come near each other, over every
     pair by brute force in numpy: bounds grown by pad that overlap, not neighbours (one shared corner, or an
-    edge they open at by 30 degrees or more), and neither apart (raycast._apart) from the other; the region is
+    edge they open at by 30 degrees or more), and neither apart (settling._apart) from the other; the region is
     the bounding box of p's bounds intersected with q's."""
     t = tris.astype(np.float64)
     lo, hi = t.min(1) - pad, t.max(1) + pad
     a, b = np.triu_indices(len(t), 1)
     both_lo, both_hi = np.maximum(lo[a], lo[b]), np.minimum(hi[a], hi[b])
     near = [k for k in np.flatnonzero(np.all(both_lo <= both_hi, 1)) if not neighbours(t, a[k], b[k])
-            and not raycast._apart(tris, a[k], b[k], pad) and not raycast._apart(tris, b[k], a[k], pad)]
+            and not settling._apart(tris, a[k], b[k], pad) and not settling._apart(tris, b[k], a[k], pad)]
     region = np.stack([np.full(t.shape[:2], np.inf), np.full(t.shape[:2], -np.inf)], 1)
     for k in near:
         for p in (a[k], b[k]):
@@ -153,7 +154,7 @@ def test_a_point_outside_the_crowding_region_lies_in_no_near_triangles_bounds(ce
     pad = 4e-3
     t = tris.astype(np.float64)
     bounds = np.stack([t.min(1) - pad, t.max(1) + pad], 1)
-    region = raycast._crowding(tris, bounds, *raycast._grid(tris, cell, pad), pad)
+    region = settling._crowding(tris, bounds, *settling._grid(tris, cell, pad), pad)
     want, pairs = crowding_reference(tris, pad)
     np.testing.assert_array_equal(region, want)
     empty = np.all(region[:, 0] == np.inf, 1) & np.all(region[:, 1] == -np.inf, 1)
@@ -179,7 +180,7 @@ def test_a_point_outside_the_crowding_region_lies_in_no_near_triangles_bounds(ce
 def test_first_hits_equal_a_brute_force_float64_cast(seed):
     rng = np.random.default_rng(seed)
     tris = _soup(rng)
-    mesh = raycast.Mesh(tris)
+    mesh = settling.Mesh(tris)
     origin = np.array([rng.uniform(-5, 5), rng.uniform(-5, 5), rng.uniform(1, 6)])
     dirs = rays_at_edges(tris, origin, rng, 1500).astype(np.float32)
     o32 = np.ascontiguousarray(np.broadcast_to(origin.astype(np.float32), dirs.shape))
@@ -190,12 +191,12 @@ def test_first_hits_equal_a_brute_force_float64_cast(seed):
     limited = mesh.first_hits(o32, dirs, 8.0)  # a limit: nothing beyond it
     np.testing.assert_array_equal(limited["primID"], brute_force(tris, o32, dirs, 8.0))
     # Embree alone, on the triangles as they are, disagrees on some of these rays
-    raw = raycast._run(raycast._scene(tris), o32, dirs)["primID"]
+    raw = settling.embree_cast(settling.embree_scene(tris), o32, dirs)["primID"]
     assert (raw != want).sum() >= 1
 
 
 def _shaken(run, rng):
-    """``run`` (raycast's Embree call) with the rays moved by up to 3 ulp on their way to Embree."""
+    """``run`` (the settling's Embree call) with the rays moved by up to 3 ulp on their way to Embree."""
     def shaken(scene, origins, dirs, max_t=1e37):
         o, d = np.asarray(origins, np.float32), np.asarray(dirs, np.float32)
         o = o + rng.integers(-3, 4, o.shape).astype(np.float32) * np.spacing(o)
@@ -213,13 +214,13 @@ def other_embree(how: str, monkeypatch) -> None:
     import simulator.frame
     monkeypatch.setattr(simulator.frame, "_SCENES", {})  # the worlds' scenes, made again under this Embree
     if how == "shaken":
-        monkeypatch.setattr(raycast, "_run", _shaken(raycast._run, np.random.default_rng(7)))
+        monkeypatch.setattr(settling, "embree_cast", _shaken(settling.embree_cast, np.random.default_rng(7)))
     else:
-        monkeypatch.setattr(raycast, "GROW_M", 1.7e-3)
+        monkeypatch.setattr(settling, "GROW_M", 1.7e-3)
 
 
 def _corners_moved(grown, rng):
-    """``grown`` (raycast's growing of the triangles for Embree) with each float32 corner coordinate moved by up
+    """``grown`` (the settling's growing of the triangles for Embree) with each float32 corner coordinate moved by up
     to 2 ulp, as other rounding in the growing would move it."""
     def moved(triangles, *args):
         big = grown(triangles, *args)
@@ -227,9 +228,9 @@ def _corners_moved(grown, rng):
     return moved
 
 
-def _settle_as(mesh: raycast.Mesh, candidates: np.ndarray, o32: np.ndarray, dirs: np.ndarray) -> np.ndarray:
-    """raycast.settle on the mesh with these candidates (N,) from Embree, no limit."""
-    return raycast.settle(mesh.triangles, mesh.planes, mesh.bounds, mesh.region, *mesh.grid, mesh.pad,
+def _settle_as(mesh: settling.Mesh, candidates: np.ndarray, o32: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """settling.settle on the mesh with these candidates (N,) from Embree, no limit."""
+    return settling.settle(mesh.triangles, mesh.planes, mesh.bounds, mesh.region, *mesh.grid, mesh.pad,
                           candidates.astype(np.int64), o32, dirs, np.full(len(dirs), 1e37))
 
 
@@ -243,9 +244,9 @@ def test_a_ray_that_grazes_its_candidate_settles_on_the_triangle_met_in_front():
     o32 = np.array([[0, 0, 0.5]], np.float32)
     d = np.array([200, 0.3, -0.5 - 3e-6])
     dirs = (d / np.linalg.norm(d)).astype(np.float32)[None]
-    mesh = raycast.Mesh(tris)
-    wall, floor = raycast._meet(tris, 0, o32[0], dirs[0])[0], raycast._meet(tris, 1, o32[0], dirs[0])[0]
-    assert 2e-3 < floor - wall < 4e-3 and raycast._drift(mesh.planes, 1, dirs[0], floor) > floor - wall
+    mesh = settling.Mesh(tris)
+    wall, floor = settling._meet(tris, 0, o32[0], dirs[0])[0], settling._meet(tris, 1, o32[0], dirs[0])[0]
+    assert 2e-3 < floor - wall < 4e-3 and settling._drift(mesh.planes, 1, dirs[0], floor) > floor - wall
     assert list(brute_force(tris, o32, dirs)) == [0]
     for candidate in (0, 1):
         assert list(_settle_as(mesh, np.array([candidate]), o32, dirs)) == [0]
@@ -260,7 +261,7 @@ def test_the_grazing_ray_found_in_the_training_world_settles_on_the_brute_force_
     near = np.flatnonzero(np.linalg.norm(tris.mean(1) - origin, axis=1) < 80)
     dirs = rays_at_edges(tris[near], origin, np.random.default_rng(1), 40000)[17694:17695].astype(np.float32)
     o32 = origin.astype(np.float32)[None]
-    mesh = raycast.Mesh(tris)
+    mesh = settling.Mesh(tris)
     assert list(brute_force(tris, o32, dirs)) == [74159]
     assert list(_settle_as(mesh, np.array([74157]), o32, dirs)) == [74159]
     assert list(mesh.first_hits(o32, dirs)["primID"]) == [74159]
@@ -308,18 +309,18 @@ def test_rays_that_graze_triangles_far_out_settle_on_the_brute_force_triangle(se
     origin, tris, dirs = grazing_pairs(rng, 40, 3000)
     o32 = np.ascontiguousarray(np.broadcast_to(origin, dirs.shape))
     want = brute_force(tris, o32, dirs)
-    mesh = raycast.Mesh(tris)
-    drift = np.array([raycast._drift(mesh.planes, k, d, raycast._meet(tris, k, origin, d)[0]) if k >= 0 else 0.0
+    mesh = settling.Mesh(tris)
+    drift = np.array([settling._drift(mesh.planes, k, d, settling._meet(tris, k, origin, d)[0]) if k >= 0 else 0.0
                       for k, d in zip(want, dirs)])
     covered = drift <= mesh.pad / 2
     assert (want[covered] >= 0).sum() > 1000
     for how in ("as it is", "shaken", "corners moved"):
         if how == "shaken":
-            monkeypatch.setattr(raycast, "_run", _shaken(raycast._run, rng))
+            monkeypatch.setattr(settling, "embree_cast", _shaken(settling.embree_cast, rng))
         elif how == "corners moved":
             monkeypatch.undo()
-            monkeypatch.setattr(raycast, "grown", _corners_moved(raycast.grown, rng))
-        got = raycast.Mesh(tris).first_hits(o32, dirs)["primID"]
+            monkeypatch.setattr(settling, "grown", _corners_moved(settling.grown, rng))
+        got = settling.Mesh(tris).first_hits(o32, dirs)["primID"]
         np.testing.assert_array_equal(got[covered], want[covered])
     lit = raycast.RayScene(World(tris, np.zeros(len(tris), np.uint8), RoadConfig())).occluded(origin, dirs)
     np.testing.assert_array_equal(lit[covered], want[covered] >= 0)
@@ -335,11 +336,11 @@ def test_settled_hits_do_not_move_with_embree(highway_scene, how, monkeypatch):
     fresh = raycast.RayScene(highway_scene.world)
     before = fresh.cast(origin, dirs)
     lit_before = fresh.occluded(np.broadcast_to(origin + [0, 0, 0.5], dirs.shape), dirs)
-    raw = raycast._run(fresh._static.embree, np.broadcast_to(origin.astype(np.float32), dirs.shape),
+    raw = settling.embree_cast(fresh._static.embree, np.broadcast_to(origin.astype(np.float32), dirs.shape),
                        dirs.astype(np.float32))["primID"]
     other_embree(how, monkeypatch)
     other = raycast.RayScene(highway_scene.world)  # grown again, if the margin changed
-    raw_other = raycast._run(other._static.embree, np.broadcast_to(origin.astype(np.float32), dirs.shape),
+    raw_other = settling.embree_cast(other._static.embree, np.broadcast_to(origin.astype(np.float32), dirs.shape),
                              dirs.astype(np.float32))["primID"]
     assert (raw != raw_other).sum() > 50  # Embree's proposals differ on many of these rays
     after = other.cast(origin, dirs)
