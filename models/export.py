@@ -158,13 +158,40 @@ def _trace(model: Detector, inputs: tuple[torch.Tensor, ...]) -> onnx.ModelProto
     return ir.serde.serialize_model(program.model)
 
 
-def _optimise(traced: onnx.ModelProto, architecture: str) -> onnx.ModelProto:
+# onnxscript's rewrite rules the optimiser runs without: "SlicesSplit" (two Slices of one tensor -> one
+# Split) matches its two-output pattern by trying every node of the graph against each Slice, quadratic in
+# the graph's size: 60-80 % of the optimiser's time on the two-stage models (PV-RCNN's compact graph: 25.6 s
+# -> 5.5 s), and it rewrites nothing in any of the seven graphs (tiny and compact: the same bytes with and
+# without it, benchmarks/export_optimiser.py)
+SKIPPED_REWRITE_RULES = ("SlicesSplit",)
+
+
+@contextlib.contextmanager
+def _without_rules(skip: tuple[str, ...]):
+    """onnxscript's default rewrite rules without those named ``skip`` while the optimiser runs (it reads
+    the module's tuple when called); an onnxscript without that tuple runs its rules unchanged."""
+    import onnxscript.rewriter as rewriter
+
+    rules = getattr(rewriter, "_DEFAULT_REWRITE_RULES", None)
+    if not isinstance(rules, tuple) or not skip:
+        yield
+        return
+    rewriter._DEFAULT_REWRITE_RULES = tuple(r for r in rules if getattr(r, "name", None) not in skip)
+    try:
+        yield
+    finally:
+        rewriter._DEFAULT_REWRITE_RULES = rules
+
+
+def _optimise(traced: onnx.ModelProto, architecture: str,
+              skip: tuple[str, ...] = SKIPPED_REWRITE_RULES) -> onnx.ModelProto:
     """The exporter's optimiser (constant folding, which folds weights too) on a traced graph, read
-    back from its proto whether it was traced now or came from the cache, so both give the same bytes."""
+    back from its proto whether it was traced now or came from the cache, so both give the same bytes;
+    ``skip``: the onnxscript rewrite rules it runs without."""
     import onnx_ir as ir
 
     program = torch.onnx.ONNXProgram(ir.serde.deserialize_model(traced), None)
-    with _quiet_exporter():
+    with _quiet_exporter(), _without_rules(skip):
         try:
             program.optimize()
         except Exception as exc:

@@ -64,8 +64,9 @@ def test_the_studys_set_keeps_its_key_and_call(tmp_path, monkeypatch):
 
 @pytest.mark.skipif(not HAS_INSTANCES, reason="simulator.generate has no instances= yet")
 def test_a_run_with_instances_and_a_sweep_set(tmp_path):
+    # the study's SOTIF set (one instance per weather: TINY's 21 frames) beside a sweep set of 3 instances
     out = run_mod.run(models=["pointpillars"], out=tmp_path / "run", progress=False,
-                      config=replace(TINY, sotif_instances=1, sweep_instances=3))
+                      config=replace(TINY, sweep_instances=3))
     summary = json.loads((out / "results.json").read_text())
     model = summary["models"]["pointpillars"]
     assert set(model["sotif_space"]) == {"sotif", "sweep"} and set(model["calibration"]) == {"0.7", "0.5"}
