@@ -1,4 +1,4 @@
-"""The benchmark pipeline on a tiny configuration: end to end, skip when current, resume."""
+"""The benchmark pipeline on a tiny configuration: end to end (with a sweep set), skip when current, resume."""
 import json
 import os
 import signal
@@ -112,6 +112,20 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     assert table["draws"] == 2 and table["AP3D mean"] == close(np.mean(aps))
     assert table["AP3D min"] == close(min(aps)) and table["AP3D max"] == close(max(aps))
     assert "Training draws" in (out / "report.md").read_text()
+    # 5b. a sweep set (3 scenario instances) beside the study's SOTIF set: simulated, predicted and judged with the
+    # model as it is (nothing before it runs again), with the scenario-space tables and report section
+    run(models=["pointpillars"], out=out, progress=False, config=replace(TINY, sweep_instances=3))
+    swept = stage_keys(out)
+    assert {k for k in swept if swept[k] != again.get(k)} >= {"simulate_sweep"}
+    assert not {k for k in swept if swept[k] != again.get(k)} & {"train_pointpillars", "export_pointpillars",
+                                                                "predict_pointpillars", "simulate_sotif"}
+    model = json.loads((out / "results.json").read_text())["models"]["pointpillars"]
+    assert set(model["sotif_space"]) == {"sotif", "sweep"} and set(model["calibration"]) == {"0.7", "0.5"}
+    assert len({r["instance"] for r in model["sotif_space"]["sweep"]["instances"]}) >= 2
+    assert "sweep_axis" in json.loads((out / "results" / "pointpillars.sweep.json").read_text())["groups_by"]
+    for name in ("sotif_instances", "sotif_pass_rates", "sotif_phantoms", "triggering_conditions", "calibration"):
+        assert (out / "tables" / f"{name}.csv").is_file()
+    assert "SOTIF over the scenario space" in (out / "report.md").read_text()
     # 6. a damaged output reruns its stage, with a line saying so: a truncated ONNX file is exported again
     # (the export may differ in its bytes, and then everything after it runs again), an emptied and a deleted
     # prediction file are predicted again

@@ -1,9 +1,7 @@
-"""The scenario-space stages of a run: instance counts per profile, the sweep set's simulation key."""
-import inspect
+"""The scenario-space stages of a run: instance counts per profile, the sweep set's simulation key (a whole run
+with a sweep set: tests/harness/test_run.py's end to end)."""
 import json
 from dataclasses import replace
-
-import pytest
 
 import simulator
 from harness import run as run_mod
@@ -13,7 +11,6 @@ from simulator.dataset import GENERATOR_VERSION
 
 TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2,
                  jobs=1)
-HAS_INSTANCES = "instances" in inspect.signature(simulator.generate).parameters
 
 
 def test_profiles_set_instance_counts():
@@ -60,22 +57,6 @@ def test_the_studys_set_keeps_its_key_and_call(tmp_path, monkeypatch):
     assert "instances" not in calls[0]  # a simulator without instances is called as it always was
     key = {"preset": "sotif", "frames": 21, "seed": 0, "lidar": "physics", "generator": GENERATOR_VERSION}
     assert stages.record("simulate_sotif")["key"] == config_hash(key)
-
-
-@pytest.mark.skipif(not HAS_INSTANCES, reason="simulator.generate has no instances= yet")
-def test_a_run_with_instances_and_a_sweep_set(tmp_path):
-    # the study's SOTIF set (one instance per weather: TINY's 21 frames) beside a sweep set of 3 instances
-    out = run_mod.run(models=["pointpillars"], out=tmp_path / "run", progress=False,
-                      config=replace(TINY, sweep_instances=3))
-    summary = json.loads((out / "results.json").read_text())
-    model = summary["models"]["pointpillars"]
-    assert set(model["sotif_space"]) == {"sotif", "sweep"} and set(model["calibration"]) == {"0.7", "0.5"}
-    assert len({r["instance"] for r in model["sotif_space"]["sweep"]["instances"]}) >= 2
-    res = json.loads((out / "results" / "pointpillars.sweep.json").read_text())
-    assert "sweep_axis" in res["groups_by"]
-    for name in ("sotif_instances", "sotif_pass_rates", "sotif_phantoms", "triggering_conditions", "calibration"):
-        assert (out / "tables" / f"{name}.csv").is_file()
-    assert "SOTIF over the scenario space" in (out / "report.md").read_text()
 
 
 def test_the_model_summary_carries_the_scenario_space(tmp_path, monkeypatch):
