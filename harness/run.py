@@ -152,6 +152,8 @@ def simulate_set(stages: Stages, cfg: RunConfig, data_dir: Path, preset: str,
     replaces the preset's own (keyed only when given)."""
     from simulator import generate
     instances = {"train": None, "sotif": cfg.sotif_instances, "sweep": cfg.sweep_instances}[preset]
+    if preset == "sotif" and instances == 1:
+        instances = None  # one instance per weather is the study's set, capped and keyed as run --instances 1 makes it
     # an instance set's size is its instance count: frames are not capped
     frames = None if instances is not None else {"train": cfg.train_frames, "sotif": cfg.sotif_frames}[preset]
     seed = cfg.seed + SIM_SEED_OFFSET[preset]

@@ -57,6 +57,9 @@ def test_the_studys_set_keeps_its_key_and_call(tmp_path, monkeypatch):
     assert "instances" not in calls[0]  # a simulator without instances is called as it always was
     key = {"preset": "sotif", "frames": 21, "seed": 0, "lidar": "physics", "generator": GENERATOR_VERSION}
     assert stages.record("simulate_sotif")["key"] == config_hash(key)
+    run_mod.simulate_set(Stages(tmp_path / "one", progress=False), replace(TINY, sotif_instances=1),
+                         tmp_path / "one" / "data", "sotif")
+    assert calls[1] == calls[0]  # one instance per weather in a config: the study's set, as run --instances 1 makes it
 
 
 def test_the_model_summary_carries_the_scenario_space(tmp_path, monkeypatch):
