@@ -12,7 +12,7 @@ import time
 import torch
 
 from models import graph_cache, zoo
-from models.export import OPSET, SKIPPED_REWRITE_RULES, _optimise, _trace, example_inputs
+from models.export import OPSET, SKIPPED_REWRITE_RULES, example_inputs, optimise_graph, trace_graph
 
 
 def compare(name: str, profile: str) -> dict:
@@ -21,11 +21,11 @@ def compare(name: str, profile: str) -> dict:
     traced = graph_cache.load(graph_cache.cache_key(net, OPSET), net)
     source = "cache"
     if traced is None:
-        source, traced = "traced", _trace(net, example_inputs(net))
+        source, traced = "traced", trace_graph(net, example_inputs(net))
     times, out = {}, {}
     for label, skip in (("all rules", ()), ("skipped", SKIPPED_REWRITE_RULES)):
         t0 = time.perf_counter()
-        out[label] = _optimise(traced, name, skip=skip).SerializeToString()
+        out[label] = optimise_graph(traced, name, skip=skip).SerializeToString()
         times[label] = time.perf_counter() - t0
     return {"model": name, "graph": source, "nodes": len(traced.graph.node), "all rules s": times["all rules"],
             "skipped s": times["skipped"], "same bytes": out["all rules"] == out["skipped"]}

@@ -143,7 +143,7 @@ class _Clock:
             self.say(f"export {self.name}: {stage} ({self.seconds():.0f} s)")
 
 
-def _trace(model: Detector, inputs: tuple[torch.Tensor, ...]) -> onnx.ModelProto:
+def trace_graph(model: Detector, inputs: tuple[torch.Tensor, ...]) -> onnx.ModelProto:
     """The traced, not yet optimised graph with the model's weights (the slow part of an export)."""
     import onnx_ir as ir
 
@@ -167,7 +167,7 @@ SKIPPED_REWRITE_RULES = ("SlicesSplit",)
 
 
 @contextlib.contextmanager
-def _without_rules(skip: tuple[str, ...]):
+def without_rewrite_rules(skip: tuple[str, ...]):
     """onnxscript's default rewrite rules without those named ``skip`` while the optimiser runs (it reads
     the module's tuple when called); an onnxscript without that tuple runs its rules unchanged."""
     import onnxscript.rewriter as rewriter
@@ -183,7 +183,7 @@ def _without_rules(skip: tuple[str, ...]):
         rewriter._DEFAULT_REWRITE_RULES = rules
 
 
-def _optimise(traced: onnx.ModelProto, architecture: str,
+def optimise_graph(traced: onnx.ModelProto, architecture: str,
               skip: tuple[str, ...] = SKIPPED_REWRITE_RULES) -> onnx.ModelProto:
     """The exporter's optimiser (constant folding, which folds weights too) on a traced graph, read
     back from its proto whether it was traced now or came from the cache, so both give the same bytes;
@@ -191,7 +191,7 @@ def _optimise(traced: onnx.ModelProto, architecture: str,
     import onnx_ir as ir
 
     program = torch.onnx.ONNXProgram(ir.serde.deserialize_model(traced), None)
-    with _quiet_exporter(), _without_rules(skip):
+    with _quiet_exporter(), without_rewrite_rules(skip):
         try:
             program.optimize()
         except Exception as exc:
@@ -208,7 +208,7 @@ def _traced_graph(model: Detector, clock: _Clock) -> onnx.ModelProto:
         return cached
     inputs = example_inputs(model)  # checks a camera model's image size before the slow part
     clock("tracing")
-    traced = _trace(model, inputs)
+    traced = trace_graph(model, inputs)
     graph_cache.store(key, traced, model)
     return traced
 
@@ -222,7 +222,7 @@ def export_onnx(model: Detector, path, metadata: dict[str, str], say=None) -> di
     clock = _Clock(model.architecture, say)
     traced = _traced_graph(model, clock)
     clock("optimising")
-    proto = _optimise(traced, model.architecture)
+    proto = optimise_graph(traced, model.architecture)
     clock("checking")
     onnx.checker.check_model(proto, full_check=True)
     strip_trace_metadata(proto)

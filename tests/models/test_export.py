@@ -305,11 +305,11 @@ def test_the_optimiser_runs_without_the_skipped_rewrite_rules_and_they_change_no
     import onnxscript.rewriter as rewriter
 
     from benchmarks.export_optimiser import compare
-    from models.export import SKIPPED_REWRITE_RULES, _without_rules
+    from models.export import SKIPPED_REWRITE_RULES, without_rewrite_rules
 
     names = [rule.name for rule in rewriter._DEFAULT_REWRITE_RULES]
     assert set(SKIPPED_REWRITE_RULES) <= set(names)
-    with _without_rules(SKIPPED_REWRITE_RULES):
+    with without_rewrite_rules(SKIPPED_REWRITE_RULES):
         assert [rule.name for rule in rewriter._DEFAULT_REWRITE_RULES] == [
             n for n in names if n not in SKIPPED_REWRITE_RULES]
     assert [rule.name for rule in rewriter._DEFAULT_REWRITE_RULES] == names
