@@ -150,3 +150,10 @@ def test_onnx_matches_torch(tmp_path):
 def rows(boxes):
     """Boxes in lexicographic order: equal scores may come out in either order."""
     return boxes[np.lexsort(boxes.T[::-1])]
+
+
+def test_cached_export_equals_its_fresh_export(tmp_path):
+    """Last in the module, after test_onnx_matches_torch's export, whose trace the graph cache holds:
+    filled with other weights it gives a fresh export's bytes (tests/models/test_export.py)."""
+    from tests.models.test_export import cached_export_equals_fresh
+    cached_export_equals_fresh(tmp_path, "mvx_net")

@@ -137,3 +137,10 @@ def test_onnx_matches_torch(exported, n, random_cloud):
     for g, w in zip(got, want):
         assert g.shape == tuple(w.shape)
         np.testing.assert_allclose(g, w.numpy(), rtol=1e-4, atol=1e-4)
+
+
+def test_cached_export_equals_its_fresh_export(exported, tmp_path):
+    """After the module's export (``exported``), whose trace the graph cache holds: filled with other
+    weights it gives a fresh export's bytes (tests/models/test_export.py)."""
+    from tests.models.test_export import cached_export_equals_fresh
+    cached_export_equals_fresh(tmp_path, "pv_rcnn")
