@@ -161,8 +161,8 @@ def trace_graph(model: Detector, inputs: tuple[torch.Tensor, ...]) -> onnx.Model
 # onnxscript's rewrite rules the optimiser runs without: "SlicesSplit" (two Slices of one tensor -> one
 # Split) matches its two-output pattern by trying every node of the graph against each Slice, quadratic in
 # the graph's size: 60-80 % of the optimiser's time on the two-stage models (PV-RCNN's compact graph: 25.6 s
-# -> 5.5 s), and it rewrites nothing in any of the seven graphs (tiny and compact: the same bytes with and
-# without it, benchmarks/export_optimiser.py)
+# -> 5.5 s), and it rewrites nothing in any of the seven graphs (tiny, compact and kitti: the same bytes with
+# and without it, benchmarks/export_optimiser.py)
 SKIPPED_REWRITE_RULES = ("SlicesSplit",)
 
 
@@ -184,7 +184,7 @@ def without_rewrite_rules(skip: tuple[str, ...]):
 
 
 def optimise_graph(traced: onnx.ModelProto, architecture: str,
-              skip: tuple[str, ...] = SKIPPED_REWRITE_RULES) -> onnx.ModelProto:
+                   skip: tuple[str, ...] = SKIPPED_REWRITE_RULES) -> onnx.ModelProto:
     """The exporter's optimiser (constant folding, which folds weights too) on a traced graph, read
     back from its proto whether it was traced now or came from the cache, so both give the same bytes;
     ``skip``: the onnxscript rewrite rules it runs without."""
