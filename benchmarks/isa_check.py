@@ -138,8 +138,8 @@ def settle_by_isa(lib, mesh, origin: np.ndarray, dirs: np.ndarray, isas_: list[s
     for isa in isas_:
         raw = embree_cast(lib, isa, mesh.triangles, origin, dirs)[2]
         cand = embree_cast(lib, isa, settling.grown(mesh.triangles), origin, dirs)[2].astype(np.int64)
-        out[isa] = raw, settling.settle(mesh.triangles, mesh.planes, mesh.bounds, mesh.region, *mesh.grid, mesh.pad, cand,
-                                  o32, dirs, np.full(len(dirs), 1e37))
+        out[isa] = raw, settling.settle(mesh.triangles, mesh.planes, mesh.bounds, mesh.region, *mesh.grid, mesh.pad,
+                                        cand, o32, dirs, np.full(len(dirs), 1e37))
     return out
 
 

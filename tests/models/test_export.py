@@ -229,7 +229,7 @@ def cached_export_equals_fresh(tmp_path, name: str) -> None:
     (BatchNorm statistics moved as by training), gives the bytes of that model's fresh export. The
     entry is the suite's (tests/conftest.py): when another test exported the model first (its own
     weights, not these), its trace is the one filled; else model 0's export writes it. PV-RCNN's and
-    MVX-Net's run in their own modules, after those modules' exports (one more trace each)."""
+    MVX-Net's run in their own modules (PV-RCNN's after its module's export: one more trace)."""
     from models import zoo
     from models.export import OPSET
 
