@@ -36,6 +36,7 @@ import hashlib
 import inspect
 import json
 import os
+import re
 from importlib import metadata
 from pathlib import Path
 
@@ -94,12 +95,17 @@ def cache_key(model: torch.nn.Module, opset: int) -> str | None:
 def _structure(model: torch.nn.Module) -> dict:
     """What else shapes the graph besides the model's own config: the module tree as printed, every
     submodule's dataclass settings and the names, shapes and dtypes of the weights (two models of one
-    class whose heads are configured apart must never share an entry)."""
+    class whose heads are configured apart must never share an entry). A BatchNorm's ``momentum`` is
+    left out of the printed tree: it weighs the running statistics of train-mode passes and is not in
+    the traced (eval-mode) graph, and ``models.base.reset_norm_statistics`` sets it to None."""
     settings = {name: dataclasses.asdict(value) for mod_name, mod in model.named_modules()
                 for attr, value in vars(mod).items() if dataclasses.is_dataclass(value) and not isinstance(value, type)
                 for name in [f"{mod_name}.{attr}"]}
     tensors = [(k, tuple(v.shape), str(v.dtype)) for k, v in model.state_dict().items()]
-    return {"modules": repr(model), "settings": settings, "tensors": tensors}
+    return {"modules": _MOMENTUM.sub("", repr(model)), "settings": settings, "tensors": tensors}
+
+
+_MOMENTUM = re.compile(r"momentum=[^,)]*, ?")
 
 
 def cache_dir() -> Path | None:

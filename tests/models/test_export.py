@@ -229,7 +229,7 @@ def cached_export_equals_fresh(tmp_path, name: str) -> None:
     (BatchNorm statistics moved as by training), gives the bytes of that model's fresh export. The
     entry is the suite's (tests/conftest.py): when another test exported the model first (its own
     weights, not these), its trace is the one filled; else model 0's export writes it. PV-RCNN's and
-    MVX-Net's run in their own modules (PV-RCNN's after its module's export: one more trace)."""
+    MVX-Net's run in their own modules, after those modules' exports (one more trace each: the fresh one)."""
     from models import zoo
     from models.export import OPSET
 
@@ -252,6 +252,21 @@ def cached_export_equals_fresh(tmp_path, name: str) -> None:
 
 def test_cached_export_of_a_model_equals_its_fresh_export(tmp_path):
     cached_export_equals_fresh(tmp_path, "pointpillars")
+
+
+def test_a_batchnorm_momentum_does_not_key_the_graph_but_its_other_settings_do():
+    """reset_norm_statistics sets every BatchNorm's momentum to None (train-mode averaging only, not in the
+    traced graph): the model keeps its entry; an eps, which is in the graph, keys another."""
+    from models import zoo
+    from models.base import reset_norm_statistics
+    from models.export import OPSET
+
+    model = zoo.build("pointpillars", "tiny")
+    key = graph_cache.cache_key(model, OPSET)
+    reset_norm_statistics(model)
+    assert graph_cache.cache_key(model, OPSET) == key
+    next(m for m in model.modules() if isinstance(m, torch.nn.BatchNorm2d)).eps = 0.01
+    assert graph_cache.cache_key(model, OPSET) != key
 
 
 def test_models_of_one_class_and_config_whose_parts_differ_never_share_a_graph_entry():

@@ -153,8 +153,7 @@ def rows(boxes):
 
 
 def test_cached_export_equals_its_fresh_export(tmp_path):
-    """The cached graph filled with other weights gives a fresh export's bytes (tests/models/test_export.py).
-    test_onnx_matches_torch's export is not stored in the cache (graph_cache.store refuses its weights), so
-    this traces model 0 for the entry, then the fresh export."""
+    """The cached graph filled with other weights gives a fresh export's bytes (tests/models/test_export.py):
+    test_onnx_matches_torch's export filled the cache, so only the fresh export traces."""
     from tests.models.test_export import cached_export_equals_fresh
     cached_export_equals_fresh(tmp_path, "mvx_net")
