@@ -14,7 +14,9 @@ Levers: ``ema`` (Schedule.ema = 0.999: the exponential moving average of the wei
 ``amp`` (Schedule.amp = "bf16": each step's forward pass and loss under bfloat16 autocast, ``harness.amp``; only on
 a CPU with native bf16, refused elsewhere); ``scenes`` (``SCENES`` training scenes, the default run's generator and
 seed, at the same number of steps: the epochs divided by the ratio of the sets' training frames, rounded; a
-schedule whose epochs do not divide is refused); ``weather`` (the default run's training scenes under the 21
+schedule whose epochs do not divide is refused; adopted: the default run trains on ``SCENES`` scenes since, so
+the lever is refused while it is the default's count, and its draws in docs/performance.md were made when the
+default was 300 scenes at 30 / 12 epochs); ``weather`` (the default run's training scenes under the 21
 weather presets in turn, in place of the six dry ones: rain, wet roads and night in training; the same steps).
 The weight average does not change a training's steps (the network's own weights of a training with it equal,
 bit for bit, those of one without: ``tests/harness/test_train.py``), so the ``ema`` training gives both rows of a
@@ -41,7 +43,7 @@ from pathlib import Path
 import numpy as np
 
 LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}, "scenes": {}, "weather": {}}
-SCENES = 1800  # the scenes lever's training set: 6x the default run's 300, so that 30 and 12 epochs become 5 and 2
+SCENES = 1800  # the scenes lever's training set: 6x the 300 of the default run then, 30 and 12 epochs becoming 5 and 2
 
 
 def simulate(run_dir: Path) -> None:
@@ -208,6 +210,10 @@ def main(argv=None) -> int:
     unknown = sorted(set(levers) - set(LEVERS) | ({"none"} & set(levers)))
     if unknown:
         p.error(f"unknown lever {', '.join(unknown)}; expected of {', '.join(l for l in LEVERS if l != 'none')}")
+    if "scenes" in levers:
+        from harness import run
+        if run.PROFILES["default"].train_frames == SCENES:
+            p.error(f"the scenes lever is adopted: the default run already trains on {SCENES} scenes")
     simulate(a.run)
     if "scenes" in levers:
         scenes_set(a.run)

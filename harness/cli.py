@@ -475,7 +475,7 @@ def _add_run(sub, quiet) -> None:
     s = sub.add_parser("run", parents=[quiet], **command_text("run"),
                        help="the whole benchmark: simulate, train, export, predict, evaluate, report")
     s.add_argument("--profile", choices=["quick", "default", "full"], default="default",
-                   help="quick: a smoke run in minutes; default: compact models on 2 CPU cores (65-110 min); "
+                   help="quick: a smoke run in minutes; default: compact models on 2 CPU cores (about 3 h a draw); "
                         "full: the references' settings (GPU)")
     s.add_argument("--models", help="comma-separated model names, as listed above (default: all available); "
                                      "none: only the imported models of --checkpoints (no training set is made)")

@@ -1,6 +1,6 @@
 """A run's val set: ``RunConfig.val_frames`` held-out training-generator frames, every one of them val.
 
-The training set's own val split (45 frames of the default run's 300; the checkpoint's ``val_ap`` and the
+The training set's own val split (270 frames of the default run's 1,800; the checkpoint's ``val_ap`` and the
 per-epoch ``val_history``) is too small to rank models: a reseed moves it by several points. This set is
 simulated apart from the training set (``--preset train`` with the seed ``seed + VAL_SEED_OFFSET``, in
 ``data/val``; the training set and its stage key stay as they are), every model's every training draw

@@ -47,10 +47,10 @@ class Schedule:
         return out
 
 
-# compact, the default run's profile: each model's RECIPE sets its epochs so that it trains in 14-25 minutes
-# on one CPU thread beside another job (255 frames, batch 2) and the seven-model default run, data and
-# inference included, stays well inside 150 minutes; the val AP40 3D moderate of held-out frames decided
-# each count (the model's RECIPE says what it measured). kitti: OpenPCDet's KITTI schedules.
+# compact, the default run's profile: each model's RECIPE sets its epochs over the default run's 1,530 training
+# frames (batch 2), so that it trains in about 10-80 minutes on one CPU thread beside another job (docs/
+# performance.md has each model's measured seconds); the val AP40 3D moderate of held-out frames decided each
+# count (the model's RECIPE says what it measured). kitti: OpenPCDet's KITTI schedules.
 PROFILE_SCHEDULES = {"tiny": Schedule(epochs=2, batch_size=2, lr=3e-3),
                      "compact": Schedule(epochs=4, batch_size=2, lr=3e-3),
                      "kitti": Schedule(epochs=80, batch_size=4, lr=3e-3)}  # OpenPCDet adam_onecycle

@@ -8,13 +8,13 @@ from models.zoo import MODEL_NAMES
 
 # (epochs, batch_size, lr, weight_decay, grad_clip) per model and profile, cold start
 COLD = {
-    "pointpillars": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (30, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 3e-3, 0.01, 10.0)},
-    "second": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (12, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 3e-3, 0.01, 10.0)},
-    "dv_second": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (12, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 3e-3, 0.01, 10.0)},
-    "parta2": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (8, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 0.01, 0.01, 10.0)},
-    "pv_rcnn": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (6, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 0.01, 0.01, 10.0)},
-    "point_rcnn": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (20, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 0.01, 0.01, 10.0)},
-    "mvx_net": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (6, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 3e-3, 0.01, 10.0)},
+    "pointpillars": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (5, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 3e-3, 0.01, 10.0)},
+    "second": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (2, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 3e-3, 0.01, 10.0)},
+    "dv_second": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (2, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 3e-3, 0.01, 10.0)},
+    "parta2": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (1, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 0.01, 0.01, 10.0)},
+    "pv_rcnn": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (1, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 0.01, 0.01, 10.0)},
+    "point_rcnn": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (4, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 0.01, 0.01, 10.0)},
+    "mvx_net": {"tiny": (2, 2, 3e-3, 0.01, 10.0), "compact": (1, 2, 3e-3, 0.01, 10.0), "kitti": (80, 4, 3e-3, 0.01, 10.0)},
 }
 WARM_LR = {"mvx_net": 1e-3}  # the peak learning rate of a warm-started training, where it differs
 WARM_FROM = {"pv_rcnn": "second", "parta2": "second", "mvx_net": "dv_second"}
