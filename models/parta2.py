@@ -107,9 +107,8 @@ CONFIGS = {
 # compact: 1 epoch over the default run's 1,530 training frames from the run's SECOND: the nearest whole
 # number to the 8 over 255 it took before (three quarters of their steps; there 12 reached val 88.2 against
 # 83.2, but the SOTIF headline fell from 74.0 to 71.0 with its proposals alone at 76.5: its second stage no
-# longer refining); kitti: OpenPCDet's
-# PartA2.yaml, OPTIMIZATION.LR 0.01. The RPN is SECOND's anchor head (``head.`` in SECOND's checkpoint) and the
-# sparse U-Net encoder SECOND's 3D backbone.
+# longer refining); kitti: OpenPCDet's PartA2.yaml, OPTIMIZATION.LR 0.01. The RPN is SECOND's anchor head
+# (``head.`` in SECOND's checkpoint) and the sparse U-Net encoder SECOND's 3D backbone.
 RECIPE = Recipe(epochs={"compact": 1}, lr={"kitti": 0.01}, warm_from="second",
                 warm_aliases=(("rpn.", "head."), ("unet.encoder.", "backbone3d.")))
 
