@@ -17,14 +17,17 @@ seed, at the same number of steps: the epochs divided by the ratio of the sets' 
 schedule whose epochs do not divide is refused; adopted: the default run trains on ``SCENES`` scenes since, so
 the lever is refused while it is the default's count, and its draws in docs/performance.md were made when the
 default was 300 scenes at 30 / 12 epochs); ``weather`` (the default run's training scenes under the 21
-weather presets in turn, in place of the six dry ones: rain, wet roads and night in training; the same steps).
+weather presets in turn, in place of the six dry ones: rain, wet roads and night in training; the same steps);
+``steps`` (twice the epochs over the same training set: what a longer schedule buys, at twice the training's cost).
 The weight average does not change a training's steps (the network's own weights of a training with it equal,
 bit for bit, those of one without: ``tests/harness/test_train.py``), so the ``ema`` training gives both rows of a
 draw: the average and the network's own weights, ``none``. Without ``ema`` among the levers, ``none`` is a training
 of its own. Each draw is also scored on the SOTIF frames of each precipitation class (dry, wet, rain) and on the
 cars of each distance bin (a second table). Each row records the content digests of the val and SOTIF sets it was
-scored on; a row scored on other bytes (the sets simulated again by another generator) or before that record is
-scored again on the next run (its first headline kept as ``headline_before``); its training is not redone.
+scored on and the number of val frames; a row scored on other bytes (the sets simulated again by another
+generator), before that record, or on the val set's 45-frame ``val`` split (rows made before 2026-12-07: the val
+set's every frame is the run's val) has what changed scored again on the next run (its first figures kept as
+``val_before`` and ``headline_before``); its training is not redone.
 
 Each training is ``harness.train.train`` on the compact profile (the default run's), one thread; ``--jobs``
 trainings at once. Prints (and writes to ``DIR/levers/table.md``) a Markdown table: model, lever, draws, val mean /
@@ -42,7 +45,7 @@ from pathlib import Path
 
 import numpy as np
 
-LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}, "scenes": {}, "weather": {}}
+LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}, "scenes": {}, "weather": {}, "steps": {}}
 SCENES = 1800  # the scenes lever's training set: 6x the 300 of the default run then, 30 and 12 epochs becoming 5 and 2
 
 
@@ -87,22 +90,38 @@ def same_steps(epochs: int, frames: int, more_frames: int) -> int:
     return out
 
 
-def _scores(net, run_dir: Path) -> dict:
-    """val AP3D moderate, the headline AP3D and the headline of each precipitation class's SOTIF frames."""
+def _val(net, run_dir: Path) -> float:
+    """val AP3D moderate on every frame of the run's val set (``valset.FRAME_LIST``, as the run scores it)."""
+    from harness import valset
+    from harness.core.kitti import read_image_set
+    from harness.train import validation_ap
+    frames = read_image_set(run_dir / valset.FRAME_LIST)
+    return validation_ap(net, run_dir / valset.VAL_DATA, frame_ids=frames)["3d_moderate"]
+
+
+def _headline(net, run_dir: Path) -> dict:
+    """The headline AP3D, and the headline of each precipitation class's SOTIF frames and each distance bin."""
     from harness.core.kitti import read_frames_meta
     from harness.train import validation_ap
     sotif = run_dir / "data" / "sotif"
     meta = read_frames_meta(sotif / "meta" / "frames.csv")
     head = validation_ap(net, sotif, split="test", groups=dict(zip(meta["frame_id"], meta["precipitation_class"])))
-    return {"val": validation_ap(net, run_dir / "data" / "val")["3d_moderate"], "headline": head["3d_all"],
-            "headline_by": {**head["3d_all_by"], **head["3d_all_distance"]}}
+    return {"headline": head["3d_all"], "headline_by": {**head["3d_all_by"], **head["3d_all_distance"]}}
+
+
+def _scores(net, run_dir: Path) -> dict:
+    return {"val": _val(net, run_dir), **_headline(net, run_dir)}
 
 
 def _data_digests(run_dir: Path) -> dict:
-    """The content digests of the val and SOTIF sets a draw is scored on (their simulate stages' outputs)."""
+    """The content digests of the val and SOTIF sets a draw is scored on (their simulate stages' outputs), and the
+    val frames scored (rows before ``val_frames`` was recorded scored the val set's 45-frame ``val`` split)."""
+    from harness import valset
+    from harness.core.kitti import read_image_set
     from harness.stages import Stages
     stages = Stages(run_dir, progress=False)
-    return {"val": stages.outputs_digest("simulate_val"), "sotif": stages.outputs_digest("simulate_sotif")}
+    return {"val": stages.outputs_digest("simulate_val"), "sotif": stages.outputs_digest("simulate_sotif"),
+            "val_frames": len(read_image_set(run_dir / valset.FRAME_LIST))}
 
 
 def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compact") -> dict:
@@ -121,13 +140,19 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
         out = json.loads(done.read_text())
         ckpt = run_dir / "levers" / name / "checkpoint.pt"
         for row in [r for r in out["rows"] if out["rows"][r].get("data") != data_sets]:
-            # scored on other val or SOTIF bytes (another generator), or before the record of them
+            # scored on other val or SOTIF bytes (another generator), on the val set's 45-frame split, or before the
+            # record of them: what changed is scored again
             net, _ = zoo.load_checkpoint(ckpt)
             if row == "none" and lever == "ema":
                 net.load_state_dict(zoo.read_checkpoint(ckpt)["train_state_dict"])
             old = out["rows"][row]
-            out["rows"][row] = {**_scores(net, run_dir), "seconds": old["seconds"], "data": data_sets,
-                                "headline_before": old.get("headline_before", old["headline"])}
+            was = old.get("data", {})
+            new = {**old, "data": data_sets}
+            if {k: was.get(k) for k in ("val", "val_frames")} != {k: data_sets[k] for k in ("val", "val_frames")}:
+                new.update(val=_val(net, run_dir), val_before=old.get("val_before", old["val"]))
+            if was.get("sotif") != data_sets["sotif"]:
+                new.update(**_headline(net, run_dir), headline_before=old.get("headline_before", old["headline"]))
+            out["rows"][row] = new
             atomic_write_text(done, json.dumps(out, indent=1))
         return out
     recipe = zoo.resolve(model, profile)
@@ -140,6 +165,8 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
         epochs = same_steps(recipe.schedule.epochs, *n_train)
     elif lever == "weather":
         data = weather_set(run_dir)
+    elif lever == "steps":
+        epochs = 2 * recipe.schedule.epochs
     ckpt = train(recipe, data, run_dir / "levers" / name, epochs=epochs, seed=seed, progress=False)
     state = zoo.read_checkpoint(ckpt)
     net, _ = zoo.load_checkpoint(ckpt)

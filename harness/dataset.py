@@ -34,15 +34,17 @@ KEEP_BYTES = 2 << 30  # frames a dataset with ``keep`` holds in memory: up to 2 
 class KittiDataset:
     """Frames of one split of a KITTI-layout folder. With ``keep`` (training: every epoch reads the
     same frames), the frames read are kept in memory, as long as they fit in ``KEEP_BYTES``, and
-    returned again as the same :class:`Sample` (whose arrays the caller must not change in place)."""
+    returned again as the same :class:`Sample` (whose arrays the caller must not change in place). ``frame_ids``:
+    the frames to read, in place of the split's list (e.g. every frame of a run's val set)."""
 
-    def __init__(self, root, split: str = "train", with_image: bool = False, keep: bool = False):
+    def __init__(self, root, split: str = "train", with_image: bool = False, keep: bool = False,
+                 frame_ids: list[str] | None = None):
         self.root = Path(root)
         if not self.root.is_dir():
             raise kitti.KittiError(self.root, "data folder not found")
         self.split = split
         self.with_image = with_image
-        self.frame_ids = kitti.read_image_set(split_file(self.root, split))
+        self.frame_ids = kitti.read_image_set(split_file(self.root, split)) if frame_ids is None else list(frame_ids)
         self._kept: dict[int, Sample] | None = {} if keep else None
         self._kept_bytes = 0
 

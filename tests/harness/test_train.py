@@ -422,3 +422,20 @@ def test_validation_ap_by_group_equals_the_ap_of_the_groups_frames_alone(tmp_pat
     assert all(0 < ap < 100 for ap in out["3d_all_by"].values()) and out["3d_all_by"]["a"] != out["3d_all_by"]["b"]
     one = validation_ap(net, data, split="train", groups=dict.fromkeys(ds.frame_ids, "all"))
     assert one["3d_all_by"] == {"all": pytest.approx(one["3d_all"], abs=1e-9)}
+
+
+def test_validation_ap_of_listed_frames_scores_those_frames_whatever_the_split(tmp_path):
+    """frame_ids: the frames of the list, across the folder's splits (a run's val set is scored on all of its
+    frames, not on its own val split)."""
+    from harness.dataset import KittiDataset
+    from harness.train import validation_ap
+    data = write_synthetic_dataset(tmp_path / "data", frames=8, seed=3, val=3)
+    train, val = KittiDataset(data, "train"), KittiDataset(data, "val")
+    assert len(train) == 5 and len(val) == 3
+    every = [*train.frame_ids, *val.frame_ids]
+    net = _GroundTruthNet(KittiDataset(data, "train", frame_ids=every), shifts=[0.0, 0.9, 0.0, 0.3, 0.0, 1.5, 0.6, 0.0])
+    out = validation_ap(net, data, frame_ids=every)
+    assert out["frames"] == 8
+    assert validation_ap(net, data, frame_ids=train.frame_ids) == validation_ap(net, data, split="train")
+    assert validation_ap(net, data, frame_ids=val.frame_ids) == validation_ap(net, data)
+    assert out["3d_all"] != validation_ap(net, data)["3d_all"]
