@@ -146,7 +146,7 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
             if row == "none" and lever == "ema":
                 net.load_state_dict(zoo.read_checkpoint(ckpt)["train_state_dict"])
             old = out["rows"][row]
-            was = old.get("data", {})
+            was = old.get("data") or {}
             new = {**old, "data": data_sets}
             if {k: was.get(k) for k in ("val", "val_frames")} != {k: data_sets[k] for k in ("val", "val_frames")}:
                 new.update(val=_val(net, run_dir), val_before=old.get("val_before", old["val"]))
