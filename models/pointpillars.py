@@ -59,7 +59,7 @@ CONFIGS = {
 # before (there, val AP40 3D moderate on 45 held-out frames of generator-1.4 data, seed 0: 68.8 after 18,
 # 74.5 after 30, BEV 82.8 -> 86.3; on earlier data 59.2 after 6, 83.1 after 12, 85.2 after 18; 64 PFN channels
 # instead of 32 made a step 40 % slower and gave 83.5 after 12). Over two draws the 1,800 scenes gave val
-# 74.5 -> 76.5 and headline 62.1 -> 66.8 (docs/performance.md, "Training levers over draws")
+# 75.8 -> 78.8 and headline 62.1 -> 66.8 (docs/performance.md, "Training levers over draws")
 RECIPE = Recipe(epochs={"compact": 5})
 
 

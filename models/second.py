@@ -69,7 +69,7 @@ PUBLISHED = replace(KITTI, backbone3d=BACKBONE_8X, head=PublishedHeadConfig(nms_
 CONFIGS = {"tiny": TINY, "compact": SECONDConfig(), "kitti": PUBLISHED}
 # compact: 2 epochs over the default run's 1,530 training frames, the steps of the 12 over 255 it took before
 # (there, val AP40 3D moderate on 45 held-out frames, seed 0: 70.2 after 6, 84.8 after 12; after 3 a lottery
-# between seeds). Over two draws the 1,800 scenes gave val 87.4 -> 87.6 and headline 62.4 -> 76.0, its range
+# between seeds). Over two draws the 1,800 scenes gave val 87.3 -> 89.0 and headline 62.4 -> 76.0, its range
 # 18.9 -> 5.8 points (docs/performance.md, "Training levers over draws")
 RECIPE = Recipe(epochs={"compact": 2})
 
