@@ -34,12 +34,13 @@ ROOT = Path(__file__).resolve().parent.parent  # the checkout: README.md, docs/,
 SAMPLE = Path("reports") / "sample"
 TEMPLATE = "sample_docs.md.j2"
 DOCUMENTS = {  # document (relative to ROOT) -> the blocks it must hold, each once
-    "README.md": ("readme-table", "boundaries"),
+    "README.md": ("readme-table", "boundaries", "rankings"),
     "docs/results.md": ("data-sets", "sweep-instances", "preset-verdict", "how-to-read"),
 }
 BLOCKS = {  # block name -> the function of harness.sample_numbers giving its template's arguments
     "readme-table": sample_numbers.readme_table,
     "boundaries": sample_numbers.boundaries,
+    "rankings": sample_numbers.rankings,
     "data-sets": sample_numbers.data_sets,
     "sweep-instances": sample_numbers.sweep_instances,
     "preset-verdict": sample_numbers.preset_verdict,

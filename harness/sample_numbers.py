@@ -218,6 +218,61 @@ def boundaries(t: SampleTables) -> dict:
             "axes": len(first["axis"].unique()), "probes": int(first["n_probes"].sum())}
 
 
+PAIR_METRICS = {"val_ap3d_moderate": "val AP", "headline_ap3d": "the SOTIF headline AP @0.7"}
+PAIR_UNITS = {"frame": "val frames", "instance": "SOTIF instances"}
+
+
+def _and(words) -> str:
+    """"A", "A and B", "A, B and C"."""
+    words = list(words)
+    return ", ".join(words[:-1]) + f" and {words[-1]}" if len(words) > 1 else "".join(words)
+
+
+def _above(rows: pd.DataFrame, models: list[str]) -> str:
+    """The pairs of one metric that are apart, as "A above B and C (by 2.0-6.8 points)" per model that is above
+    another (most pairs won first; "every other model" when it is above all), or "no pair is apart"."""
+    wins: dict[str, list] = {}
+    for r in rows[_true(rows["apart"])].itertuples(index=False):
+        win, lose = (r.model_a, r.model_b) if r.mean_diff > 0 else (r.model_b, r.model_a)
+        wins.setdefault(win, []).append((lose, abs(float(r.mean_diff))))
+    everyone = list(dict.fromkeys([*models, *sorted(set(rows["model_a"]) | set(rows["model_b"]))]))
+    phrases = []
+    for m in sorted(wins, key=lambda m: (-len(wins[m]), everyone.index(m))):
+        losers = sorted(wins[m], key=lambda x: everyone.index(x[0]))
+        others = (set(rows["model_a"]) | set(rows["model_b"])) - {m}
+        whom = "every other model" if len(others) > 1 and {x for x, _ in losers} >= others \
+            else _and(_label(x) for x, _ in losers)
+        diffs = [d for _, d in losers]
+        phrases.append(f"{_label(m)} above {whom} (by {span(min(diffs), max(diffs), 1)} points)")
+    return "; ".join(phrases) if phrases else "no pair is apart"
+
+
+def rankings(t: SampleTables) -> dict:
+    """Which pairs of models ``tables/pairs.csv`` separates (their 95 % interval over frames or instances and
+    training draws excludes 0) on val AP and the SOTIF headline, and which pairs ``tables/sotif_pairs.csv``
+    separates on the SOTIF verdict (McNemar p < 0.05)."""
+    pairs = t("pairs", ["model_a", "model_b", "metric", "mean_diff", "apart", "unit", "n_units", "n_draws_a",
+                        "n_draws_b"])
+    verdicts = t("sotif_pairs", ["set", "verdict", "model_a", "model_b", "a_only", "b_only", "apart"])
+    models = list(t("overview", ["model"])["model"])
+    metrics = [m for m in PAIR_METRICS if (pairs["metric"] == m).any()]
+    if not metrics:
+        raise MissingTable(t.folder / "pairs.csv", f"no rows of {' or '.join(PAIR_METRICS)}")
+    draws = sorted(set(pairs["n_draws_a"]) | set(pairs["n_draws_b"]))
+    units = [f"{num(n)} {PAIR_UNITS.get(u, u)}" for u, n in
+             pairs.drop_duplicates("metric").set_index("metric").loc[metrics, ["unit", "n_units"]].itertuples(False)]
+    apart = verdicts[_true(verdicts["apart"])]
+    verdict = "no pair is apart" if apart.empty else "; ".join(
+        f"{_label(a if ao > bo else b)} passes more of the {s} instances than {_label(b if ao > bo else a)} "
+        f"({verdict_kind}: {max(ao, bo)} against {min(ao, bo)} passed by one of the two only)"
+        for s, verdict_kind, a, b, ao, bo in apart[["set", "verdict", "model_a", "model_b", "a_only", "b_only"]]
+        .itertuples(index=False))
+    return {"metrics": [{"name": PAIR_METRICS[m], "above": _above(pairs[pairs["metric"] == m], models)}
+                        for m in metrics],
+            "units": _and(units), "draws": _same(draws, sep=" or "), "one_draw": draws == [1],
+            "verdict": verdict}
+
+
 # ----------------------------------------------------------------------------- docs/results.md
 def _vehicle_row(row) -> str:
     """"NIR-black SUV, reflectance 0.60" of an instance row."""

@@ -60,9 +60,14 @@ def tiny_tables(folder):
     pd.DataFrame([{"weather": w, "model": m, "n_frames": 20, "n_car": 60} for w in PRESETS for m in models]) \
         .to_csv(folder / "weather_detail.csv", index=False)
     pd.DataFrame([{"model": m, "n_corrupt_presets": 4} for m in models]).to_csv(folder / "robustness.csv", index=False)
-    pd.DataFrame([{"model_a": "pointpillars", "model_b": "second", "metric": metric, "unit": unit, "n_units": n}
-                  for metric, unit, n in (("val_ap3d_moderate", "frame", 300), ("headline_ap3d", "instance", 10))]) \
+    pd.DataFrame([{"model_a": "pointpillars", "model_b": "second", "metric": metric, "unit": unit, "n_units": n,
+                   "mean_diff": diff, "apart": apart, "n_draws_a": 1, "n_draws_b": 1}
+                  for metric, unit, n, diff, apart in (("val_ap3d_moderate", "frame", 300, -11.39, True),
+                                                       ("headline_ap3d", "instance", 10, -2.14, False))]) \
         .to_csv(folder / "pairs.csv", index=False)
+    pd.DataFrame([{"set": "sotif", "verdict": v, "model_a": "pointpillars", "model_b": "second", "a_only": 0,
+                   "b_only": 0, "apart": False} for v in ("perception", "system")]) \
+        .to_csv(folder / "sotif_pairs.csv", index=False)
     _instances(models).to_csv(folder / "sotif_instances.csv", index=False)
     # the pass rates as harness.report_space writes them (the intervals made up: the blocks only print them)
     rates = [("pointpillars", "sweep", "perception", "car", 1, 1, 0.21, 1.0), ("pointpillars", "sweep", "system", "car", 0, 1, 0.0, 0.79),
@@ -126,6 +131,51 @@ def test_tiny_tables_give_the_known_readme_rows(tmp_path):
     bounds = render_blocks(tiny_tables(tmp_path / "again"))["boundaries"]
     assert "| rain (mm/h), 120-60 sedan silver | fails above 25-50 mm/h | passes everywhere in 25-50 mm/h |" in bounds
     assert "each of 1 weather and paint axes moved alone on 1 reference scenarios (3 probes" in " ".join(bounds.split())
+
+
+def test_tiny_tables_give_the_known_rankings(tmp_path):
+    """The README's ranking sentences name exactly the pairs apart in pairs.csv and sotif_pairs.csv."""
+    words = " ".join(render_blocks(tiny_tables(tmp_path / "tables"))["rankings"].split())
+    assert "a bootstrap over the same 300 val frames and 10 SOTIF instances for both models; one training draw each" \
+        in words
+    assert ("On val AP: SECOND above PointPillars (by 11.4 points). On the SOTIF headline AP @0.7: no pair is apart. "
+            "On the SOTIF verdict") in words
+    assert words.endswith("p < 0.05), no pair is apart.")
+
+
+def test_rankings_over_draws_name_each_winner_once_with_its_range(tmp_path):
+    """Three models, three draws each: a model above both others is above "every other model"; the others' wins
+    follow, most first (then in the models table's order); a pair whose interval spans 0 is not named; a verdict pair apart names the one that passes
+    more."""
+    folder = tiny_tables(tmp_path / "tables")
+    pd.DataFrame([{"model": m, "val AP3D mod": 80.0, "val frames": 300, "AP3D": 60.0}
+                  for m in ("pointpillars", "second", "parta2")]).to_csv(folder / "overview.csv", index=False)
+    rows = [("pointpillars", "second", "val_ap3d_moderate", -4.04, True), ("pointpillars", "parta2", "val_ap3d_moderate",
+            -6.96, True), ("second", "parta2", "val_ap3d_moderate", -0.5, False),
+            ("pointpillars", "second", "headline_ap3d", 3.0, True), ("pointpillars", "parta2", "headline_ap3d", 1.0, False),
+            ("second", "parta2", "headline_ap3d", -2.25, True)]
+    pd.DataFrame([{"model_a": a, "model_b": b, "metric": m, "unit": "frame" if m.startswith("val") else "instance",
+                   "n_units": 300 if m.startswith("val") else 42, "mean_diff": d, "apart": ap, "n_draws_a": 3,
+                   "n_draws_b": 3} for a, b, m, d, ap in rows]).to_csv(folder / "pairs.csv", index=False)
+    pd.DataFrame([{"set": "sweep", "verdict": "perception", "model_a": "pointpillars", "model_b": "parta2",
+                   "a_only": 1, "b_only": 9, "apart": True},
+                  {"set": "sweep", "verdict": "system", "model_a": "pointpillars", "model_b": "parta2", "a_only": 2,
+                   "b_only": 5, "apart": False}]).to_csv(folder / "sotif_pairs.csv", index=False)
+    words = " ".join(render_blocks(folder)["rankings"].split())
+    assert "for both models and over their 3 training draws each" in words and "one training draw each" not in words
+    assert "On val AP: SECOND above PointPillars (by 4.0 points); Part-A2 above PointPillars (by 7.0 points)." in words
+    assert ("On the SOTIF headline AP @0.7: PointPillars above SECOND (by 3.0 points); Part-A2 above SECOND "
+            "(by 2.2 points).") in words
+    assert ("Part-A2 passes more of the sweep instances than PointPillars (perception: 9 against 1 passed by one of "
+            "the two only).") in words and "system:" not in words
+    rows[1] = ("pointpillars", "parta2", "val_ap3d_moderate", -6.96, True)
+    rows[2] = ("second", "parta2", "val_ap3d_moderate", -1.5, True)
+    pd.DataFrame([{"model_a": a, "model_b": b, "metric": m, "unit": "frame", "n_units": 300, "mean_diff": d,
+                   "apart": ap, "n_draws_a": 3, "n_draws_b": 3} for a, b, m, d, ap in rows[:3]]) \
+        .to_csv(folder / "pairs.csv", index=False)
+    words = " ".join(render_blocks(folder)["rankings"].split())
+    assert ("On val AP: Part-A2 above every other model (by 1.5-7.0 points); SECOND above PointPillars (by 4.0 "
+            "points). On the SOTIF verdict") in words
 
 
 def test_tiny_tables_give_the_known_results_blocks(tmp_path):
