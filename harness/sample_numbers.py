@@ -220,6 +220,7 @@ def boundaries(t: SampleTables) -> dict:
 
 PAIR_METRICS = {"val_ap3d_moderate": "val AP", "headline_ap3d": "the SOTIF headline AP @0.7"}
 PAIR_UNITS = {"frame": "val frames", "instance": "SOTIF instances"}
+SET_WORDS = {"sotif": "SOTIF", "sweep": "sweep"}
 
 
 def _and(words) -> str:
@@ -247,6 +248,13 @@ def _above(rows: pd.DataFrame, models: list[str]) -> str:
     return "; ".join(phrases) if phrases else "no pair is apart"
 
 
+def _passes_more(data_set: str, verdict: str, a: str, b: str, a_only: int, b_only: int) -> str:
+    """"B passes more of the sweep instances than A (perception: 9 against 1 passed by one of the two only)"."""
+    win, lose = (a, b) if a_only > b_only else (b, a)
+    return (f"{_label(win)} passes more of the {SET_WORDS.get(data_set, data_set)} instances than {_label(lose)} "
+            f"({verdict}: {max(a_only, b_only)} against {min(a_only, b_only)} passed by one of the two only)")
+
+
 def rankings(t: SampleTables) -> dict:
     """Which pairs of models ``tables/pairs.csv`` separates (their 95 % interval over frames or instances and
     training draws excludes 0) on val AP and the SOTIF headline, and which pairs ``tables/sotif_pairs.csv``
@@ -262,11 +270,8 @@ def rankings(t: SampleTables) -> dict:
     units = [f"{num(n)} {PAIR_UNITS.get(u, u)}" for u, n in
              pairs.drop_duplicates("metric").set_index("metric").loc[metrics, ["unit", "n_units"]].itertuples(False)]
     apart = verdicts[_true(verdicts["apart"])]
-    verdict = "no pair is apart" if apart.empty else "; ".join(
-        f"{_label(a if ao > bo else b)} passes more of the {s} instances than {_label(b if ao > bo else a)} "
-        f"({verdict_kind}: {max(ao, bo)} against {min(ao, bo)} passed by one of the two only)"
-        for s, verdict_kind, a, b, ao, bo in apart[["set", "verdict", "model_a", "model_b", "a_only", "b_only"]]
-        .itertuples(index=False))
+    verdict = "; ".join(_passes_more(*r) for r in apart[["set", "verdict", "model_a", "model_b", "a_only",
+                                                         "b_only"]].itertuples(index=False)) or "no pair is apart"
     return {"metrics": [{"name": PAIR_METRICS[m], "above": _above(pairs[pairs["metric"] == m], models)}
                         for m in metrics],
             "units": _and(units), "draws": _same(draws, sep=" or "), "one_draw": draws == [1],
