@@ -233,8 +233,8 @@ def _above(rows: pd.DataFrame, models: list[str]) -> str:
     """The pairs of one metric that are apart, as "A above B and C (by 2.0-6.8 points)" per model that is above
     another (most pairs won first; "every other model" when it is above all), or "no pair is apart"."""
     wins: dict[str, list] = {}
-    for r in rows[_true(rows["apart"])].itertuples(index=False):
-        win, lose = (r.model_a, r.model_b) if r.mean_diff > 0 else (r.model_b, r.model_a)
+    for r in rows[_true(rows["apart"])].itertuples(index=False):  # the interval's side names the better model
+        win, lose = (r.model_a, r.model_b) if r.ci_lo > 0 else (r.model_b, r.model_a)
         wins.setdefault(win, []).append((lose, abs(float(r.mean_diff))))
     everyone = list(dict.fromkeys([*models, *sorted(set(rows["model_a"]) | set(rows["model_b"]))]))
     phrases = []
@@ -259,8 +259,8 @@ def rankings(t: SampleTables) -> dict:
     """Which pairs of models ``tables/pairs.csv`` separates (their 95 % interval over frames or instances and
     training draws excludes 0) on val AP and the SOTIF headline, and which pairs ``tables/sotif_pairs.csv``
     separates on the SOTIF verdict (McNemar p < 0.05)."""
-    pairs = t("pairs", ["model_a", "model_b", "metric", "mean_diff", "apart", "unit", "n_units", "n_draws_a",
-                        "n_draws_b"])
+    pairs = t("pairs", ["model_a", "model_b", "metric", "mean_diff", "ci_lo", "apart", "unit", "n_units",
+                        "n_draws_a", "n_draws_b"])
     verdicts = t("sotif_pairs", ["set", "verdict", "model_a", "model_b", "a_only", "b_only", "apart"])
     models = list(t("overview", ["model"])["model"])
     metrics = [m for m in PAIR_METRICS if (pairs["metric"] == m).any()]

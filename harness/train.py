@@ -237,10 +237,9 @@ def eager_inputs(sample, camera: bool, device="cpu") -> list[torch.Tensor]:
 def validation_ap(net, data: Path, max_frames: int | None = None, split: str = "val",
                   groups: dict[str, str] | None = None, frame_ids: list[str] | None = None) -> dict:
     """AP40 (3D / BEV, IoU 0.7) of the eager model on the ``split`` split (default ``val``; ``frame_ids``: these
-    frames instead) with the project's KITTI
-    evaluator: KITTI moderate and the headline (all distances, height filter off; and per distance bin,
-    ``3d_all_distance``). With ``groups`` (frame id ->
-    group name, e.g. the precipitation class) also the headline 3D AP of each group's frames (``3d_all_by``)."""
+    frames instead) with the project's KITTI evaluator: KITTI moderate and the headline (all distances, height
+    filter off; and per distance bin, ``3d_all_distance``). With ``groups`` (frame id -> group name, e.g. the
+    precipitation class) also the headline 3D AP of each group's frames (``3d_all_by``)."""
     from harness.eval_kitti import build_eval_set, kitti_ap
     from harness.evaluate import headline_summary
     from harness.infer import boxes_to_results

@@ -61,7 +61,8 @@ def tiny_tables(folder):
         .to_csv(folder / "weather_detail.csv", index=False)
     pd.DataFrame([{"model": m, "n_corrupt_presets": 4} for m in models]).to_csv(folder / "robustness.csv", index=False)
     pd.DataFrame([{"model_a": "pointpillars", "model_b": "second", "metric": metric, "unit": unit, "n_units": n,
-                   "mean_diff": diff, "apart": apart, "n_draws_a": 1, "n_draws_b": 1}
+                   "mean_diff": diff, "ci_lo": diff - 2.0, "ci_hi": diff + 2.0, "apart": apart, "n_draws_a": 1,
+                   "n_draws_b": 1}
                   for metric, unit, n, diff, apart in (("val_ap3d_moderate", "frame", 300, -11.39, True),
                                                        ("headline_ap3d", "instance", 10, -2.14, False))]) \
         .to_csv(folder / "pairs.csv", index=False)
@@ -155,8 +156,9 @@ def test_rankings_over_draws_name_each_winner_once_with_its_range(tmp_path):
             ("pointpillars", "second", "headline_ap3d", 3.0, True), ("pointpillars", "parta2", "headline_ap3d", 1.0, False),
             ("second", "parta2", "headline_ap3d", -2.25, True)]
     pd.DataFrame([{"model_a": a, "model_b": b, "metric": m, "unit": "frame" if m.startswith("val") else "instance",
-                   "n_units": 300 if m.startswith("val") else 42, "mean_diff": d, "apart": ap, "n_draws_a": 3,
-                   "n_draws_b": 3} for a, b, m, d, ap in rows]).to_csv(folder / "pairs.csv", index=False)
+                   "n_units": 300 if m.startswith("val") else 42, "mean_diff": d, "ci_lo": d - 1.0, "ci_hi": d + 1.0,
+                   "apart": ap, "n_draws_a": 3, "n_draws_b": 3} for a, b, m, d, ap in rows]).to_csv(folder / "pairs.csv",
+                                                                                                index=False)
     pd.DataFrame([{"set": "sweep", "verdict": "perception", "model_a": "pointpillars", "model_b": "parta2",
                    "a_only": 1, "b_only": 9, "apart": True},
                   {"set": "sweep", "verdict": "system", "model_a": "pointpillars", "model_b": "parta2", "a_only": 2,
@@ -171,7 +173,8 @@ def test_rankings_over_draws_name_each_winner_once_with_its_range(tmp_path):
     rows[1] = ("pointpillars", "parta2", "val_ap3d_moderate", -6.96, True)
     rows[2] = ("second", "parta2", "val_ap3d_moderate", -1.5, True)
     pd.DataFrame([{"model_a": a, "model_b": b, "metric": m, "unit": "frame", "n_units": 300, "mean_diff": d,
-                   "apart": ap, "n_draws_a": 3, "n_draws_b": 3} for a, b, m, d, ap in rows[:3]]) \
+                   "ci_lo": d - 1.0, "ci_hi": d + 1.0, "apart": ap, "n_draws_a": 3, "n_draws_b": 3}
+                  for a, b, m, d, ap in rows[:3]]) \
         .to_csv(folder / "pairs.csv", index=False)
     words = " ".join(render_blocks(folder)["rankings"].split())
     assert ("On val AP: Part-A2 above every other model (by 1.5-7.0 points); SECOND above PointPillars (by 4.0 "
