@@ -66,6 +66,12 @@ def _one(texts) -> str:
     return texts[0] if len(set(texts)) == 1 else ", ".join(texts)
 
 
+def _and(words) -> str:
+    """"A", "A and B", "A, B and C"."""
+    words = list(words)
+    return ", ".join(words[:-1]) + f" and {words[-1]}" if len(words) > 1 else "".join(words)
+
+
 def _each(values, what: str) -> str:
     """"74 frames each", or "74 / 80 / 74 frames"."""
     text = _same(values)
@@ -201,7 +207,7 @@ def readme_table(t: SampleTables) -> dict:
 def _axes_words(sweep: pd.DataFrame) -> str:
     axes = [AXIS_WORDS.get(a, a) for a in dict.fromkeys(sweep["sweep_axis"]) if isinstance(a, str)] \
         if "sweep_axis" in sweep.columns else []
-    return ", ".join(axes[:-1]) + f" and {axes[-1]}" if len(axes) > 1 else "".join(axes)
+    return _and(axes)
 
 
 def boundaries(t: SampleTables) -> dict:
@@ -223,12 +229,6 @@ PAIR_UNITS = {"frame": "val frames", "instance": "SOTIF instances"}
 SET_WORDS = {"sotif": "SOTIF", "sweep": "sweep"}
 
 
-def _and(words) -> str:
-    """"A", "A and B", "A, B and C"."""
-    words = list(words)
-    return ", ".join(words[:-1]) + f" and {words[-1]}" if len(words) > 1 else "".join(words)
-
-
 def _above(rows: pd.DataFrame, models: list[str]) -> str:
     """The pairs of one metric that are apart, as "A above B and C (by 2.0-6.8 points)" per model that is above
     another (most pairs won first; "every other model" when it is above all), or "no pair is apart"."""
@@ -236,11 +236,12 @@ def _above(rows: pd.DataFrame, models: list[str]) -> str:
     for r in rows[_true(rows["apart"])].itertuples(index=False):  # the interval's side names the better model
         win, lose = (r.model_a, r.model_b) if r.ci_lo > 0 else (r.model_b, r.model_a)
         wins.setdefault(win, []).append((lose, abs(float(r.mean_diff))))
-    everyone = list(dict.fromkeys([*models, *sorted(set(rows["model_a"]) | set(rows["model_b"]))]))
+    present = set(rows["model_a"]) | set(rows["model_b"])
+    everyone = list(dict.fromkeys([*models, *sorted(present)]))
     phrases = []
     for m in sorted(wins, key=lambda m: (-len(wins[m]), everyone.index(m))):
         losers = sorted(wins[m], key=lambda x: everyone.index(x[0]))
-        others = (set(rows["model_a"]) | set(rows["model_b"])) - {m}
+        others = present - {m}
         whom = "every other model" if len(others) > 1 and {x for x, _ in losers} >= others \
             else _and(_label(x) for x, _ in losers)
         diffs = [d for _, d in losers]

@@ -146,8 +146,8 @@ def test_tiny_tables_give_the_known_rankings(tmp_path):
 
 def test_rankings_over_draws_name_each_winner_once_with_its_range(tmp_path):
     """Three models, three draws each: a model above both others is above "every other model"; the others' wins
-    follow, most first (then in the models table's order); a pair whose interval spans 0 is not named; a verdict pair apart names the one that passes
-    more."""
+    follow, most first (then in the models table's order); a pair whose interval spans 0 is not named; a verdict
+    pair apart names the one that passes more."""
     folder = tiny_tables(tmp_path / "tables")
     pd.DataFrame([{"model": m, "val AP3D mod": 80.0, "val frames": 300, "AP3D": 60.0}
                   for m in ("pointpillars", "second", "parta2")]).to_csv(folder / "overview.csv", index=False)
