@@ -21,7 +21,9 @@ weather presets in turn, in place of the six dry ones: rain, wet roads and night
 ``steps`` (twice the epochs over the same training set: what a longer schedule buys, at twice the training's cost);
 ``pillars`` (PointPillars only: 0.256 m pillars in place of 0.32 m, the range widened by 0.768 m each side so
 that the grid, 320 x 256 cells, divides by the backbone's strides: 1.6x the pseudo-image's cells, output cells of
-0.512 m in place of 0.64 m; the same epochs).
+0.512 m in place of 0.64 m; the same epochs); ``pillars16`` (PointPillars only: the published 0.16 m pillars over
+the default range, 512 x 400 cells, 4x the cells and output cells of 0.32 m, at most 24,000 pillars a frame: the
+default run's frames hold up to about 11,000 non-empty 0.16 m pillars).
 The weight average does not change a training's steps (the network's own weights of a training with it equal,
 bit for bit, those of one without: ``tests/harness/test_train.py``), so the ``ema`` training gives both rows of a
 draw: the average and the network's own weights, ``none``. Without ``ema`` among the levers, ``none`` is a training
@@ -49,10 +51,11 @@ from pathlib import Path
 import numpy as np
 
 LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}, "scenes": {}, "weather": {}, "steps": {},
-          "pillars": {}}
+          "pillars": {}, "pillars16": {}}
 # levers that change a network's config: per lever, the models it applies to and their config fields
 CONFIG_LEVERS = {"pillars": {"pointpillars": {"voxel_size": (0.256, 0.256, 4.0),
-                                              "pc_range": (0.0, -32.768, -3.0, 81.92, 32.768, 1.0)}}}
+                                              "pc_range": (0.0, -32.768, -3.0, 81.92, 32.768, 1.0)}},
+                 "pillars16": {"pointpillars": {"voxel_size": (0.16, 0.16, 4.0), "max_voxels": 24000}}}
 SCENES = 1800  # the scenes lever's training set: 6x the 300 of the default run then, 30 and 12 epochs becoming 5 and 2
 
 
