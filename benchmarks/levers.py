@@ -23,7 +23,9 @@ weather presets in turn, in place of the six dry ones: rain, wet roads and night
 that the grid, 320 x 256 cells, divides by the backbone's strides: 1.6x the pseudo-image's cells, output cells of
 0.512 m in place of 0.64 m; the same epochs); ``pillars16`` (PointPillars only: the published 0.16 m pillars over
 the default range, 512 x 400 cells, 4x the cells and output cells of 0.32 m, at most 24,000 pillars a frame: the
-default run's frames hold up to about 11,000 non-empty 0.16 m pillars).
+default run's frames hold up to about 11,000 non-empty 0.16 m pillars); ``lr_half`` (half the recipe's peak
+learning rate, the same one-cycle shape and steps: whether a model whose per-epoch val swings between draws is
+stepping too far).
 The weight average does not change a training's steps (the network's own weights of a training with it equal,
 bit for bit, those of one without: ``tests/harness/test_train.py``), so the ``ema`` training gives both rows of a
 draw: the average and the network's own weights, ``none``. Without ``ema`` among the levers, ``none`` is a training
@@ -51,7 +53,7 @@ from pathlib import Path
 import numpy as np
 
 LEVERS = {"none": {}, "ema": {"ema": 0.999}, "amp": {"amp": "bf16"}, "scenes": {}, "weather": {}, "steps": {},
-          "pillars": {}, "pillars16": {}}
+          "pillars": {}, "pillars16": {}, "lr_half": {}}
 # levers that change a network's config: per lever, the models it applies to and their config fields
 CONFIG_LEVERS = {"pillars": {"pointpillars": {"voxel_size": (0.256, 0.256, 4.0),
                                               "pc_range": (0.0, -32.768, -3.0, 81.92, 32.768, 1.0)}},
@@ -134,6 +136,20 @@ def _data_digests(run_dir: Path) -> dict:
             "val_frames": len(read_image_set(run_dir / valset.FRAME_LIST))}
 
 
+def lever_recipe(model: str, lever: str, profile: str = "compact"):
+    """``model``'s recipe in ``profile`` with ``lever``'s schedule and config fields (the epochs of ``steps`` and
+    ``scenes`` are set by ``draw``, which knows the training set)."""
+    from models import zoo
+    recipe = zoo.resolve(model, profile)
+    schedule = replace(recipe.schedule, **LEVERS[lever])
+    if lever == "lr_half":
+        schedule = replace(schedule, lr=schedule.lr / 2)
+    recipe = replace(recipe, schedule=schedule)
+    if lever in CONFIG_LEVERS:
+        recipe = replace(recipe, config=replace(recipe.config, **CONFIG_LEVERS[lever][model]))
+    return recipe
+
+
 def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compact") -> dict:
     """Train (or resume) one draw and score it; ``{lever: scores}``, with ``none`` beside ``ema`` (the same
     training's own weights). Written to ``levers/<model>-<lever>-seed<seed>.json`` and read from there when done."""
@@ -165,10 +181,7 @@ def draw(model: str, lever: str, seed: int, run_dir: Path, profile: str = "compa
             out["rows"][row] = new
             atomic_write_text(done, json.dumps(out, indent=1))
         return out
-    recipe = zoo.resolve(model, profile)
-    recipe = replace(recipe, schedule=replace(recipe.schedule, **LEVERS[lever]))
-    if lever in CONFIG_LEVERS:
-        recipe = replace(recipe, config=replace(recipe.config, **CONFIG_LEVERS[lever][model]))
+    recipe = lever_recipe(model, lever, profile)
     data, epochs = run_dir / "data" / "train", None
     if lever == "scenes":
         from harness.core.kitti import read_image_set

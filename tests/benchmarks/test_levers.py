@@ -1,5 +1,5 @@
 """benchmarks/levers.py: the levers that change a network's config build a network that runs, and are refused
-for the models they do not apply to."""
+for the models they do not apply to; the schedule levers change the recipe's schedule and nothing else."""
 from dataclasses import replace
 
 import numpy as np
@@ -33,3 +33,12 @@ def test_a_config_lever_is_refused_for_a_model_it_does_not_apply_to(tmp_path, ca
         levers.main(["--run", str(tmp_path), "--models", "second", "--levers", "pillars"])
     assert "applies to pointpillars only" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())  # refused before anything is simulated
+
+
+@pytest.mark.parametrize("model", ["point_rcnn", "pointpillars"])
+def test_the_lr_half_lever_halves_the_peak_rate_and_keeps_the_rest(model):
+    recipe, halved = zoo.resolve(model, "compact"), levers.lever_recipe(model, "lr_half")
+    assert halved.schedule.lr == recipe.schedule.lr / 2
+    assert replace(halved.schedule, lr=recipe.schedule.lr) == recipe.schedule
+    assert halved.config == recipe.config
+    assert levers.lever_recipe(model, "none") == recipe
