@@ -302,7 +302,10 @@ def reliability_figure(summary: dict, iou: str = "0.7") -> Figure:
         ax.set_title(model, fontsize=9)
         ax.set_xlabel("mean score")
         ax.set_ylabel(f"share matched at 3D IoU {iou}" if k == 0 else "")
-        ax.legend(fontsize=6)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=6)
+        else:  # every score bin empty (a model with no detection): say so instead of an empty legend
+            ax.text(0.5, 0.5, "no scored detection", ha="center", va="center", transform=ax.transAxes, fontsize=8)
     fig.tight_layout()
     return fig
 

@@ -239,3 +239,17 @@ def test_a_run_without_boundaries_renders_as_before(space_run):
     lead = md[md.index("## Where each detector stops finding the slow car in time"):md.index("## Models at a glance")]
     assert "| bounds |" not in md and "### Boundaries" not in md and "bounds rows" not in md
     assert [line for line in lead.splitlines() if line.startswith("| ")][1].startswith("| sotif | car-bodied: all |")
+
+
+def test_the_reliability_figure_of_a_model_without_scored_detections_says_so(recwarn):
+    """A calibration whose every score bin is empty (a model that detected nothing) draws no legend (matplotlib
+    warns of one without artists) and says why the panel is empty."""
+    empty = {"bins": {"confidence": [None] * 10, "accuracy": [None] * 10}, "ece": 0.0}
+    scored = {"bins": {"confidence": [0.15, None, 0.85], "accuracy": [0.1, None, 0.9]}, "ece": 0.05}
+    summary = {"models": {"a": {"calibration": {"0.7": {"dry": empty, "rain": empty}}},
+                          "b": {"calibration": {"0.7": {"dry": scored}}}}}
+    fig = report_space.reliability_figure(summary)
+    a, b = fig.axes
+    assert a.get_legend() is None and [t.get_text() for t in a.texts] == ["no scored detection"]
+    assert [t.get_text() for t in b.get_legend().get_texts()] == ["dry (ECE 0.050)"] and not b.texts
+    assert not [w for w in recwarn if "legend" in str(w.message)]
