@@ -349,7 +349,7 @@ def _overview(run: tables.Run) -> dict:
             "created": s.get("created", "?"), "models": models, "frames": frames, "total_seconds": total or None,
             "wall_seconds": s.get("wall_seconds"), "read": HOW_TO_READ["models"], "vals": vals, "val": _val_set(s), "draws_note": report_pairs.draws_note(s),
             "val_note": notes.val_note(vals), "published": published_note(s), "val_header": notes.val_header(vals), "code": provenance.compare(s.get("code")),
-            "data_sets": data_identity.note(run.run_dir), "glossary": _glossary(run.run_dir)}
+            "machine": provenance.machine_note(s), "data_sets": data_identity.note(run.run_dir), "glossary": _glossary(run.run_dir)}
 
 
 def _glossary(run_dir: Path) -> str | None:

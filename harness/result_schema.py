@@ -75,7 +75,7 @@ _RUNTIME = {
     "onnxruntime?": Maybe({"latency_ms_p50?": OPT, "latency_ms_p90?": OPT, "fps?": OPT}),
     "prediction?": Maybe({"latency_ms_p50?": OPT}),
     "peak_memory_mb?": OPT, "torch_eager_ms_p50?": OPT, "ort_speedup?": OPT, "agreement?": Maybe(_AGREEMENT),
-    "openvino?": Maybe({"latency_ms_p50?": OPT, "agreement?": Maybe(_AGREEMENT)}),
+    "openvino?": Maybe({"latency_ms_p50?": OPT, "agreement?": Maybe(_AGREEMENT)}), "machine?": Maybe(TEXT),
 }
 _SOTIF_ROW = {"threshold?": OPT, "distance_if_no_braking_m?": OPT, "stopping_distance_m?": OPT,
               "time_after_lane_change_s?": OPT}
@@ -89,11 +89,13 @@ _RELIABILITY = {"ece": OPT, "n": NUMBER,  # harness.calibration.reliability
 _VAL = {"3d_moderate?": OPT, "n_frames?": OPT}  # the run's val set (harness.valset)
 _MODEL = {
     "results": TEXT, "size_mb?": OPT, "params?": OPT, "runtime?": _RUNTIME, "sotif?": Maybe(Each(_SOTIF_ROW)),
-    "train?": Maybe({"seconds?": OPT, "epochs?": OPT, "val_ap?": Maybe({"3d_moderate?": OPT})}),
+    "train?": Maybe({"seconds?": OPT, "epochs?": OPT, "val_ap?": Maybe({"3d_moderate?": OPT}),
+                     "trained_on?": Maybe(Each(NUMBER))}),
     "provenance?": Maybe(Each(ANY)), "sotif_space?": Maybe(Each(_SPACE)),
     "calibration?": Maybe(Each(Each(_RELIABILITY))), "val?": Maybe(_VAL),
 }
-_DRAW = {"seed": ANY, "val_ap?": Maybe({"3d_moderate?": OPT}), "val?": Maybe(_VAL),
+_DRAW = {"seed": ANY, "tag?": TEXT, "val_ap?": Maybe({"3d_moderate?": OPT}), "val?": Maybe(_VAL),
+         "trained_on?": Maybe(Each(NUMBER)),
          "headline?": Maybe({"3d?": Maybe({"0.7?": OPT}), "bev?": Maybe({"0.7?": OPT})})}
 SUMMARY = {
     "models": Each(_MODEL), "data?": {f"n_{split}_frames?": OPT for split in ("test", "val", "train")},

@@ -19,6 +19,7 @@ from pathlib import Path
 
 from harness.core.files import atomic_write_text, sha256_file
 from harness.dataset import config_hash
+from harness.provenance import machine
 
 
 BIG_FILE = 1 << 20  # bytes: a stage's record may keep such files' size and mtime, to skip reading them
@@ -84,7 +85,8 @@ class Stages:
         self._say(f"[run ] {name}")
         t0 = time.perf_counter()
         info = fn() or {}
-        info = {**info, "seconds": round(time.perf_counter() - t0, 3), "finished": round(time.time(), 3)}
+        info = {**info, "seconds": round(time.perf_counter() - t0, 3), "finished": round(time.time(), 3),
+                "machine": machine()}
         record = {"key": key, "info": info, "outputs": self.hashes(outputs)}
         if by_stat:
             stats = {rel: _stat(self.root / rel) for rel in record["outputs"]}

@@ -341,7 +341,7 @@ def draws_table(run: Run) -> pd.DataFrame:
     """With several training draws per model (``run --seeds K``): per model, the mean and range over
     the draws of the val AP40 3D moderate and the headline AP40 3D / BEV @0.7, next to the 95%
     bootstrap interval over frames of draw 0's headline in its narrowest and widest weather
-    group (the spread a reader sees without draws)."""
+    group (the spread a reader sees without draws), and the CPUs the draws trained on."""
     rows = []
     for name, draws in (run.summary.get("draws") or {}).items():
         ci = [row["headline_ci95"]["3d"] for row in group_rows(run.results.get(name, {}), "weather").values()]
@@ -353,6 +353,9 @@ def draws_table(run: Run) -> pd.DataFrame:
             row.update({f"{key} {k}": v for k, v in mean_range(values).items()})
         row["AP3D draw-0 CI95 width, weather min"] = min(widths) if widths else np.nan
         row["AP3D draw-0 CI95 width, weather max"] = max(widths) if widths else np.nan
+        # a training rerun on another CPU is another draw: the CPUs that ran the draws' epochs
+        row["trained on"] = " / ".join(dict.fromkeys(m for d in draws for m in d.get("trained_on") or {} if m)) or \
+            "not recorded"
         rows.append(row)
     return pd.DataFrame(rows)
 

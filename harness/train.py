@@ -8,7 +8,8 @@ Checkpoint (written atomically after every epoch; an existing one of the same mo
 data and config is resumed): ``model``, ``profile``, ``config`` (asdict), ``state_dict``,
 ``epoch`` (completed epochs), ``epochs``, ``optimizer``, ``scheduler``, ``data_hash``,
 ``config_hash``, ``final_loss``, ``train_seconds`` (summed over resumed sessions), ``seed``, and
-``val_history``: after every epoch, the loss and the val AP40 on the first ``EPOCH_VAL_FRAMES`` val
+``val_history``: after every epoch, the loss, the machine it ran on (``harness.provenance.machine``: a
+rerun on another CPU is another draw) and the val AP40 on the first ``EPOCH_VAL_FRAMES`` val
 frames (the convergence check: has the schedule reached its plateau?). After the last epoch,
 ``val_ap`` scores all val frames.
 """
@@ -37,6 +38,7 @@ from harness.augment import AugmentConfig, augment
 from harness.core.files import atomic_write_bytes
 from harness.dataset import KittiDataset, config_hash, dataset_hash, has_split
 from harness.gt_database import load_or_build
+from harness.provenance import machine
 from models import zoo
 from models.base import Detector
 from models.recipe import ModelRecipe, Schedule
@@ -402,9 +404,9 @@ def _fit(s: _Session, seed: int, aug: AugmentConfig, bar, rank: int = 0, world: 
 
 
 def _epoch_check(s: _Session, epoch: int, loss: float, bar) -> dict:
-    """The epoch's entry of ``val_history``: its mean loss and, when the data has a val split, the
+    """The epoch's entry of ``val_history``: its mean loss, the machine it ran on and, when the data has a val split, the
     val AP40 on its first ``EPOCH_VAL_FRAMES`` frames (one line on the progress bar)."""
-    entry = {"epoch": epoch + 1, "loss": loss}
+    entry = {"epoch": epoch + 1, "loss": loss, "machine": machine()}  # another CPU: another draw
     if has_split(s.ds.root, "val"):
         ap = validation_ap(s.evaluated, s.ds.root, EPOCH_VAL_FRAMES)
         entry.update({k: ap[k] for k in ("3d_moderate", "bev_moderate", "3d_all", "frames")})

@@ -1,5 +1,10 @@
 import hashlib
+import os
+import re
 import subprocess
+from pathlib import Path
+
+import pytest
 
 from harness import provenance
 
@@ -45,3 +50,61 @@ def test_record_and_compare(tmp_path):
     assert f"commit {commit[:10]}" in text and "matched" in text and rec["sources_sha256"][:16] in text
     assert "differed" in provenance.compare(rec, "0" * 64)
     assert "does not record" in provenance.compare(None) and "does not record" in provenance.compare({"commit": "a"})
+
+
+INTEL = """processor\t: 0
+vendor_id\t: GenuineIntel
+model name\t: Intel(R) Xeon(R)  Processor
+flags\t\t: fpu sse sse2 sse4_2 avx avx2 fma avx512f avx512_bf16 amx_bf16
+
+processor\t: 1
+model name\t: Intel(R) Xeon(R)  Processor
+flags\t\t: fpu sse sse2
+"""
+EPYC = "processor\t: 0\nmodel name\t: AMD EPYC 7B13\nflags\t\t: sse4_2 avx avx2 fma\n"
+ARM = "processor\t: 0\nBogoMIPS\t: 50.00\nFeatures\t: fp asimd\n"
+
+
+@pytest.mark.parametrize("info, cores, fallback, expected", [
+    (INTEL, 2, "", "Intel(R) Xeon(R) Processor (AVX-512, 2 cores)"),  # the first CPU's line, spaces collapsed
+    (EPYC, 2, "", "AMD EPYC 7B13 (AVX2, 2 cores)"),
+    ("model name: Old\nflags: sse sse2\n", 4, "", "Old (4 cores)"),
+    (ARM, 8, "aarch64", "aarch64 (8 cores)"),
+    ("", None, "", "unknown CPU"),
+])
+def test_machine_text_names_the_cpu_its_widest_vector_set_and_cores(info, cores, fallback, expected):
+    assert provenance.machine_text(info, cores, fallback) == expected
+
+
+def test_machine_is_this_cpu():
+    text = Path("/proc/cpuinfo").read_text() if Path("/proc/cpuinfo").is_file() else ""
+    names = re.findall(r"^model name\s*:\s*(.+)$", text, flags=re.M)
+    here = provenance.machine()
+    assert here.endswith(f"{os.cpu_count()} cores)")
+    if names:
+        assert here.startswith(" ".join(names[0].split()) + " (")
+
+
+def test_trained_on_counts_epochs_per_machine_in_their_order():
+    history = [{"epoch": 1}, {"epoch": 2, "machine": "B"}, {"epoch": 3, "machine": "A"}, {"epoch": 4, "machine": "B"}]
+    assert list(provenance.trained_on(history).items()) == [("", 1), ("B", 2), ("A", 1)]
+    assert provenance.trained_on(None) == {} and provenance.trained_on([]) == {}
+
+
+def _summary(trainings, timed=("X",), draws=None):
+    models = {name: {"train": {"trained_on": on}, "runtime": {"machine": t}}
+              for (name, on), t in zip(trainings.items(), list(timed) + [None] * len(trainings))}
+    return {"models": models, **({"draws": draws} if draws else {})}
+
+
+def test_machine_note_says_where_every_draw_trained_and_where_latency_was_timed():
+    one = provenance.machine_note(_summary({"a": {"X": 2}, "b": {"X": 3}}))
+    assert one == ("trained on X (every epoch of the 2 training(s)); latency timed on X. A training rerun on another "
+                   "CPU is another draw; latency holds for the CPU that timed it.")
+    draws = {"a": [{"tag": "a", "trained_on": {"X": 2}}, {"tag": "a.seed1", "trained_on": {"Y": 2}},
+                   {"tag": "a.seed2", "trained_on": {"": 1, "Y": 1}}, {"tag": "a.seed3", "trained_on": {"": 2}}]}
+    mixed = provenance.machine_note(_summary({"a": {"X": 2}, "imported": {}}, timed=("X", "Y"), draws=draws))
+    assert mixed.startswith("trained on X: a; trained on Y: a.seed1; a.seed2 (1 of 2 epochs on a machine not "
+                            "recorded, 1 of 2 epochs on Y); where a.seed3 trained is not recorded")
+    assert "latency timed on X and Y." in mixed and "imported" not in mixed  # an imported model trained nowhere here
+    assert provenance.machine_note({"models": {"a": {"train": None}}}) is None  # an old run: no line

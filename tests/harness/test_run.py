@@ -13,6 +13,7 @@ import torch
 
 from dataclasses import replace
 
+from harness import provenance
 from harness.run import PROFILES, RunConfig, resolve, run
 
 TINY = RunConfig("test", "tiny", train_frames=6, sotif_frames=21, epochs=1, workers=1, bootstrap=5, runtime_frames=2,
@@ -112,6 +113,11 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     assert table["draws"] == 2 and table["AP3D mean"] == close(np.mean(aps))
     assert table["AP3D min"] == close(min(aps)) and table["AP3D max"] == close(max(aps))
     assert "Training draws" in (out / "report.md").read_text()
+    # every epoch names the CPU it ran on (another CPU: another draw), and so do the table and the report
+    here = provenance.machine()
+    assert [d["trained_on"] for d in draws] == [{here: TINY.epochs}] * 2 and table["trained on"] == here
+    assert f"- **Machine:** trained on {here} (every epoch of the 2 training(s)); latency timed on {here}." in \
+        (out / "report.md").read_text()
     # 5b. a sweep set (3 scenario instances) beside the study's SOTIF set: simulated, predicted and judged with the
     # model as it is (nothing before it runs again), with the scenario-space tables and report section
     run(models=["pointpillars"], out=out, progress=False, config=replace(TINY, sweep_instances=3))
