@@ -320,6 +320,8 @@ def _model_jobs(cfg: RunConfig, run_dir: Path, models: list[str], recipes: dict[
         eta = f", ETA {left:.0f} s" if left is not None else ""
         say(f"== {name} done ({len(done)}/{len(names)} models, elapsed {now - t0:.0f} s{eta})")
 
+    if progress and (first := _start_eta(cfg, order, minutes, jobs)):
+        say(first)
     if jobs == 1:
         for i, name in enumerate(order, 1):
             starts[name] = time.perf_counter()
@@ -376,6 +378,17 @@ def _eta_seconds(order: list[str], minutes: dict[str, float], starts: dict[str, 
         if n not in starts:
             heapq.heappush(free, heapq.heappop(free) + per_minute * minutes[n])
     return max(free)
+
+
+def _start_eta(cfg: RunConfig, order: list[str], minutes: dict[str, float], jobs: int) -> str:
+    """The model jobs' ETA before any has ended, from the sample run's minutes (``_SAMPLE_MINUTES``, measured in
+    the default profile) scaled by the work each job has left; "" for other profiles (other networks and
+    schedules: their first ETA comes with the first job's end)."""
+    if cfg.profile != "default" or not order:
+        return ""
+    left = _eta_seconds(order, minutes, {}, {}, 0.0, jobs)
+    return (f"== model jobs: about {left / 60:.0f} min at the sample machine's job times (docs/performance.md); "
+            "the ETA printed as each job ends scales them by this machine's")
 
 
 def _work_left(cfg: RunConfig, run_dir: Path, name: str, recipe: ModelRecipe | None) -> float:

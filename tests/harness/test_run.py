@@ -327,6 +327,19 @@ def test_eta_of_model_jobs():
     assert _eta_seconds([a, b], m, {a: 0.0, b: 0.0}, {a: t_a}, 10 * t_a, 2) == 0.0
 
 
+def test_the_default_run_states_its_eta_before_the_first_job_ends():
+    from harness.run import _SAMPLE_MINUTES, _start_eta
+    m = _SAMPLE_MINUTES
+    order = sorted(m, key=m.get, reverse=True)
+    # one slot: the jobs one after the other; two slots: each job, longest first, on the slot that frees first
+    assert _start_eta(PROFILES["default"], order, m, 1).startswith(f"== model jobs: about {sum(m.values()):.0f} min ")
+    slots = [0.0, 0.0]
+    for n in order:
+        slots[slots.index(min(slots))] += m[n]
+    assert f"about {max(slots):.0f} min" in _start_eta(PROFILES["default"], order, m, 2)
+    assert _start_eta(PROFILES["quick"], order, m, 2) == "" and _start_eta(TINY, order, m, 1) == ""
+
+
 def test_bad_profile_and_model_names():
     with pytest.raises(ValueError, match="unknown profile 'huge'"):
         run(profile="huge")
