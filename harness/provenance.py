@@ -140,9 +140,13 @@ def machine_note(summary: dict) -> str | None:
             if d.get("trained_on"):
                 trainings[d.get("tag") or name] = d["trained_on"]
     timed = sorted({(m.get("runtime") or {}).get("machine") for m in models.values()} - {None})
-    text = [_trainings_text(trainings)] if trainings else []
-    if timed:
-        text.append(f"latency timed on {' and '.join(timed)}")
+    places = {m for epochs in trainings.values() for m in epochs}
+    if len(timed) == 1 and places == set(timed):  # the usual run: one machine did it all
+        text = [f"trained (every epoch of the {len(trainings)} training(s)) and latency timed on {timed[0]}"]
+    else:
+        text = [_trainings_text(trainings)] if trainings else []
+        if timed:
+            text.append(f"latency timed on {' and '.join(timed)}")
     if not text:
         return None
     return "; ".join(text) + ". A training rerun on another CPU is another draw; latency holds for the CPU that timed it."

@@ -99,8 +99,10 @@ def _summary(trainings, timed=("X",), draws=None):
 
 def test_machine_note_says_where_every_draw_trained_and_where_latency_was_timed():
     one = provenance.machine_note(_summary({"a": {"X": 2}, "b": {"X": 3}}))
-    assert one == ("trained on X (every epoch of the 2 training(s)); latency timed on X. A training rerun on another "
+    assert one == ("trained (every epoch of the 2 training(s)) and latency timed on X. A training rerun on another "
                    "CPU is another draw; latency holds for the CPU that timed it.")
+    timed_elsewhere = provenance.machine_note(_summary({"a": {"X": 2}, "b": {"X": 3}}, timed=("Y",)))
+    assert timed_elsewhere.startswith("trained on X (every epoch of the 2 training(s)); latency timed on Y.")
     draws = {"a": [{"tag": "a", "trained_on": {"X": 2}}, {"tag": "a.seed1", "trained_on": {"Y": 2}},
                    {"tag": "a.seed2", "trained_on": {"": 1, "Y": 1}}, {"tag": "a.seed3", "trained_on": {"": 2}}]}
     mixed = provenance.machine_note(_summary({"a": {"X": 2}, "imported": {}}, timed=("X", "Y"), draws=draws))
