@@ -102,8 +102,9 @@ def machine() -> str:
 
 
 def trained_on(history) -> dict[str, int]:
-    """Epochs per machine of a checkpoint's ``val_history``, in the order they ran; epochs whose entry
-    names no machine (trained before the entry kept it) under the key ``""``."""
+    """Epochs per machine of a checkpoint's ``val_history`` (as a run's summary carries it per model and per
+    draw), in the order they ran; epochs whose entry names no machine (trained before the entry kept it)
+    under the key ``""``."""
     return dict(Counter((h.get("machine") if isinstance(h, dict) else None) or "" for h in history or []))
 
 
@@ -135,10 +136,10 @@ def machine_note(summary: dict) -> str | None:
     models = summary.get("models") or {}
     trainings = {}
     for name, m in models.items():
-        own = [{"tag": name, "trained_on": (m.get("train") or {}).get("trained_on")}]
+        own = [{"tag": name, "val_history": (m.get("train") or {}).get("val_history")}]
         for d in (summary.get("draws") or {}).get(name) or own:
-            if d.get("trained_on"):
-                trainings[d.get("tag") or name] = d["trained_on"]
+            if epochs := trained_on(d.get("val_history")):
+                trainings[d.get("tag") or name] = epochs
     timed = sorted({(m.get("runtime") or {}).get("machine") for m in models.values()} - {None})
     places = {m for epochs in trainings.values() for m in epochs}
     if len(timed) == 1 and places == set(timed):  # the usual run: one machine did it all

@@ -90,12 +90,12 @@ _VAL = {"3d_moderate?": OPT, "n_frames?": OPT}  # the run's val set (harness.val
 _MODEL = {
     "results": TEXT, "size_mb?": OPT, "params?": OPT, "runtime?": _RUNTIME, "sotif?": Maybe(Each(_SOTIF_ROW)),
     "train?": Maybe({"seconds?": OPT, "epochs?": OPT, "val_ap?": Maybe({"3d_moderate?": OPT}),
-                     "trained_on?": Maybe(Each(NUMBER))}),
+                     "val_history?": Maybe(ListOf(ANY))}),
     "provenance?": Maybe(Each(ANY)), "sotif_space?": Maybe(Each(_SPACE)),
     "calibration?": Maybe(Each(Each(_RELIABILITY))), "val?": Maybe(_VAL),
 }
 _DRAW = {"seed": ANY, "tag?": TEXT, "val_ap?": Maybe({"3d_moderate?": OPT}), "val?": Maybe(_VAL),
-         "trained_on?": Maybe(Each(NUMBER)),
+         "val_history?": Maybe(ListOf(ANY)),
          "headline?": Maybe({"3d?": Maybe({"0.7?": OPT}), "bev?": Maybe({"0.7?": OPT})})}
 SUMMARY = {
     "models": Each(_MODEL), "data?": {f"n_{split}_frames?": OPT for split in ("test", "val", "train")},

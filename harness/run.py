@@ -203,7 +203,7 @@ def _checkpoint_meta(ckpt: Path) -> dict:
                  and v.dtype.is_floating_point)
     return {"params": params, "epochs": state.get("epoch"), "final_loss": state.get("final_loss"),
             "val_ap": state.get("val_ap"), "val_history": state.get("val_history"),
-            "train_seconds": state.get("train_seconds"), "trained_on": provenance.trained_on(state.get("val_history"))}
+            "train_seconds": state.get("train_seconds")}
 
 
 def _predict_eval(stages: Stages, cfg: RunConfig, run_dir: Path, name: str, sotif_hash: str, runtime: str,
@@ -256,7 +256,7 @@ def _model_summary(cfg, run_dir: Path, name: str, tinfo: dict, ort: dict, probe:
             "op_histogram": info.op_histogram, "provenance": info.provenance,
             # the checkpoint's own training time (summed over resumed sessions), else the stage's
             "train": {"seconds": ck["train_seconds"] or tinfo.get("seconds"), "epochs": ck["epochs"], "final_loss": ck["final_loss"],
-                      "val_ap": ck["val_ap"], "val_history": ck["val_history"], "trained_on": ck["trained_on"]},
+                      "val_ap": ck["val_ap"], "val_history": ck["val_history"]},
             # latency measured by the probe with the machine to itself; the prediction stage's own
             # figures (all test frames, possibly beside another job) stay under "prediction"
             "runtime": runtime, "results": f"results/{name}.json", "sotif": view, "val": valset.val_summary(run_dir, name),
@@ -548,7 +548,7 @@ def _draw_summary(run_dir: Path, tag: str, seed: int) -> dict:
     ck = _checkpoint_meta(checkpoint_of(run_dir, tag))
     res = json.loads((run_dir / "results" / f"{tag}.json").read_text())
     return {"tag": tag, "seed": seed, "onnx": f"models/{tag}.onnx", "results": f"results/{tag}.json",
-            "val_ap": ck["val_ap"], "trained_on": ck["trained_on"], "val": valset.val_summary(run_dir, tag),
+            "val_ap": ck["val_ap"], "val_history": ck["val_history"], "val": valset.val_summary(run_dir, tag),
             "headline": res["headline"],
             "distance": res["distance"]}
 

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from harness import rain, report_bounds, report_space, result_schema
+from harness import provenance, rain, report_bounds, report_space, result_schema
 from harness.cells import DIFFS, mark_capped, round_floats
 from harness.core.files import atomic_write_text
 from harness.core.kitti import KittiError, read_frames_meta
@@ -354,8 +354,8 @@ def draws_table(run: Run) -> pd.DataFrame:
         row["AP3D draw-0 CI95 width, weather min"] = min(widths) if widths else np.nan
         row["AP3D draw-0 CI95 width, weather max"] = max(widths) if widths else np.nan
         # a training rerun on another CPU is another draw: the CPUs that ran the draws' epochs
-        row["trained on"] = " / ".join(dict.fromkeys(m for d in draws for m in d.get("trained_on") or {} if m)) or \
-            "not recorded"
+        places = (m for d in draws for m in provenance.trained_on(d.get("val_history")) if m)
+        row["trained on"] = " / ".join(dict.fromkeys(places)) or "not recorded"
         rows.append(row)
     return pd.DataFrame(rows)
 

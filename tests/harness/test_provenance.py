@@ -91,9 +91,15 @@ def test_trained_on_counts_epochs_per_machine_in_their_order():
     assert provenance.trained_on(None) == {} and provenance.trained_on([]) == {}
 
 
+def _history(epochs):
+    """A ``val_history`` of ``{machine: epochs}`` ("": entries that name none)."""
+    return [{"epoch": 1, **({"machine": m} if m else {})} for m, n in epochs.items() for _ in range(n)]
+
+
 def _summary(trainings, timed=("X",), draws=None):
-    models = {name: {"train": {"trained_on": on}, "runtime": {"machine": t}}
+    models = {name: {"train": {"val_history": _history(on)}, "runtime": {"machine": t}}
               for (name, on), t in zip(trainings.items(), list(timed) + [None] * len(trainings))}
+    draws = {name: [{"tag": tag, "val_history": _history(on)} for tag, on in d] for name, d in (draws or {}).items()}
     return {"models": models, **({"draws": draws} if draws else {})}
 
 
@@ -103,8 +109,7 @@ def test_machine_note_says_where_every_draw_trained_and_where_latency_was_timed(
                    "CPU is another draw; latency holds for the CPU that timed it.")
     timed_elsewhere = provenance.machine_note(_summary({"a": {"X": 2}, "b": {"X": 3}}, timed=("Y",)))
     assert timed_elsewhere.startswith("trained on X (every epoch of the 2 training(s)); latency timed on Y.")
-    draws = {"a": [{"tag": "a", "trained_on": {"X": 2}}, {"tag": "a.seed1", "trained_on": {"Y": 2}},
-                   {"tag": "a.seed2", "trained_on": {"": 1, "Y": 1}}, {"tag": "a.seed3", "trained_on": {"": 2}}]}
+    draws = {"a": [("a", {"X": 2}), ("a.seed1", {"Y": 2}), ("a.seed2", {"": 1, "Y": 1}), ("a.seed3", {"": 2})]}
     mixed = provenance.machine_note(_summary({"a": {"X": 2}, "imported": {}}, timed=("X", "Y"), draws=draws))
     assert mixed.startswith("trained on X: a; trained on Y: a.seed1; a.seed2 (1 of 2 epochs on a machine not "
                             "recorded, 1 of 2 epochs on Y); where a.seed3 trained is not recorded")

@@ -115,7 +115,8 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     assert "Training draws" in (out / "report.md").read_text()
     # every epoch names the CPU it ran on (another CPU: another draw), and so do the table and the report
     here = provenance.machine()
-    assert [d["trained_on"] for d in draws] == [{here: TINY.epochs}] * 2 and table["trained on"] == here
+    assert [provenance.trained_on(d["val_history"]) for d in draws] == [{here: TINY.epochs}] * 2
+    assert table["trained on"] == here
     assert f"- **Machine:** trained (every epoch of the 2 training(s)) and latency timed on {here}." in \
         (out / "report.md").read_text()
     # 5b. a sweep set (3 scenario instances) beside the study's SOTIF set: simulated, predicted and judged with the

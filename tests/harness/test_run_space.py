@@ -69,7 +69,7 @@ def test_the_model_summary_carries_the_scenario_space(tmp_path, monkeypatch):
     (root / "models").mkdir()
     centroid_detector(root / "models" / "alpha.onnx")
     monkeypatch.setattr(run_mod, "_checkpoint_meta", lambda ckpt: {k: None for k in (
-        "params", "epochs", "final_loss", "val_ap", "val_history", "train_seconds", "trained_on")})
+        "params", "epochs", "final_loss", "val_ap", "val_history", "train_seconds")})
     probe = {"onnxruntime": {"latency_ms_p50": 120.0, "latency_ms_p90": 150.0}, "seconds": 1.0}
     summary = run_mod._model_summary(TINY, root, "alpha", {"seconds": 2.0}, {"latency_ms_p50": 99.0}, probe)
     view = summary["sotif_space"]["sotif"]
