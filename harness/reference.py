@@ -146,8 +146,14 @@ def check_predictions(data_dir, predictions_dir) -> None:
 def detector_frames(ref: Reference, predictions_dir, threshold: float) -> pd.DataFrame:
     """Per judged frame (``ref.frames``' order): ``hit`` (an in-path hit on the slow vehicle), ``iou_hit`` (a kept
     box at BEV IoU >= 0.5 with it), ``n_phantom`` (phantom in-path boxes) and ``predicted`` (a result file
-    exists). Boxes scoring below ``threshold`` and DontCare rows are dropped."""
+    exists: always, as a judged frame without one is refused, naming it, as ``evaluate`` does). Boxes scoring below
+    ``threshold`` and DontCare rows are dropped."""
     predictions_dir = Path(predictions_dir)
+    missing = [fid for fid in ref.frames["frame_id"] if not (predictions_dir / f"{fid}.txt").is_file()]
+    if missing:  # no file is not "nothing found": a cut-off predict would pass for a blind detector
+        raise KittiError(predictions_dir / f"{missing[0]}.txt",
+                         f"file not found ({len(missing)} of the {len(ref.frames)} judged frames lack one; every "
+                         "frame needs one, empty if nothing was found)")
     rows = []
     for i, fid in enumerate(ref.frames["frame_id"]):
         path = predictions_dir / f"{fid}.txt"

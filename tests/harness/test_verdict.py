@@ -138,6 +138,8 @@ def test_labels_as_predictions_pass_every_preventable_instance_and_empty_fails_e
         labels.joinpath(path.name).write_text(path.read_text())  # label files: no score column (score 1)
     empty = tmp_path / "empty"
     empty.mkdir()
+    for path in labels.glob("*.txt"):
+        empty.joinpath(path.name).write_text("")  # a result file per frame, nothing found
     for pred, passes in ((labels, True), (empty, False)):
         result = verdict.verdict(scenario_set, pred, 0.5, latency_ms=0.0)
         rows = pd.DataFrame(result["instances"])
@@ -240,6 +242,13 @@ def test_cli_bad_predictions_and_latency_exit_2(scenario_set, tmp_path, capsys):
     (pred / "999999.txt").unlink()
     assert _cli("--data", scenario_set, "--predictions", pred, "--output", tmp_path / "v.csv", "--latency-ms", -5) == 2
     assert "--latency-ms -5" in capsys.readouterr().err
+    assert _cli("--data", scenario_set, "--predictions", tmp_path / "nope", "--output", tmp_path / "v.csv") == 2
+    assert "nope" in capsys.readouterr().err
+    write_predictions(scenario_set, pred, SPECS, [T] * len(SPECS))
+    (pred / "000007.txt").unlink()  # a cut-off predict: not the same as a detector that found nothing
+    assert _cli("--data", scenario_set, "--predictions", pred, "--output", tmp_path / "v.csv") == 2
+    err = capsys.readouterr().err
+    assert "000007.txt" in err and "file not found (1 of the" in err
     assert _cli("--data", scenario_set, "--predictions", tmp_path / "nope", "--output", tmp_path / "v.csv") == 2
     assert "nope" in capsys.readouterr().err
     assert _cli("--data", scenario_set, "--predictions", pred, "--output", pred / "v.csv") == 2
