@@ -122,12 +122,17 @@ def _trainings_text(trainings: dict[str, dict]) -> str:
             mixed.append(f"{tag} (" + ", ".join(f"{n} of {total} epochs on {m or 'a machine not recorded'}"
                                                 for m, n in epochs.items()) + ")")
     if len(whole) == 1 and not mixed and not unknown:
-        return f"trained on {next(iter(whole))} (every epoch of the {len(trainings)} training(s))"
+        return f"trained on {next(iter(whole))} (every epoch of {_trainings(len(trainings))})"
     parts = [f"trained on {m}: {', '.join(tags)}" for m, tags in whole.items()] + mixed
     if unknown:
         parts.append(f"where {', '.join(unknown)} trained is not recorded (checkpoints made before their epochs "
                      "named the machine)")
     return "; ".join(parts)
+
+
+def _trainings(n: int) -> str:
+    """"the training" or "the 14 trainings"."""
+    return "the training" if n == 1 else f"the {n} trainings"
 
 
 def machine_note(summary: dict) -> str | None:
@@ -143,7 +148,7 @@ def machine_note(summary: dict) -> str | None:
     timed = sorted({(m.get("runtime") or {}).get("machine") for m in models.values()} - {None})
     places = {m for epochs in trainings.values() for m in epochs}
     if len(timed) == 1 and places == set(timed):  # the usual run: one machine did it all
-        text = [f"trained (every epoch of the {len(trainings)} training(s)) and latency timed on {timed[0]}"]
+        text = [f"trained (every epoch of {_trainings(len(trainings))}) and latency timed on {timed[0]}"]
     else:
         text = [_trainings_text(trainings)] if trainings else []
         if timed:

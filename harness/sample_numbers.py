@@ -179,9 +179,16 @@ def readme_table(t: SampleTables) -> dict:
     cell = lambda m, conds: " / ".join(num(ap.loc[m, c], 1) if m in ap.index and c in ap.columns and
                                        pd.notna(ap.loc[m, c]) else "–" for c in conds)
     models = list(ov["model"])
+    val, head, draws = [num(v, 1) for v in ov["val AP3D mod"]], [num(v, 1) for v in ov["AP3D"]], _draws(t)
+    if draws is not None:  # over the draws: mean (min-max); the other columns are the first draw's
+        d = draws.set_index("model")
+        spread = lambda m, col, own: (f"{num(d.loc[m, col + ' mean'], 1)} ({num(d.loc[m, col + ' min'], 1)}-"
+                                      f"{num(d.loc[m, col + ' max'], 1)})" if m in d.index else own)
+        val = [spread(m, "val AP3D mod", v) for m, v in zip(models, val)]
+        head = [spread(m, "AP3D", v) for m, v in zip(models, head)]
     rows = pd.DataFrame({
-        "model": [_label(m) for m in models], "val": [num(v, 1) for v in ov["val AP3D mod"]],
-        "AP @0.7": [num(v, 1) for v in ov["AP3D"]], "AP @0.5 dry / wet / rain": [cell(m, CLASSES) for m in models],
+        "model": [_label(m) for m in models], "val": val,
+        "AP @0.7": head, "AP @0.5 dry / wet / rain": [cell(m, CLASSES) for m in models],
         "soft / mid / hard rain": [cell(m, RAIN_GRADES) for m in models],
         "sweep cars: perception": [_rate(rates, (m, "sweep", "perception", CARS), True) for m in models],
         "system": [_rate(rates, (m, "sweep", "system", CARS)) for m in models],
@@ -201,7 +208,25 @@ def readme_table(t: SampleTables) -> dict:
             "grade_rates": " / ".join(_rain_rates(t, [first.loc[g, "group"] for g in RAIN_GRADES])),
             "grade_frames": _each([first.loc[g, "n_frames"] for g in RAIN_GRADES], "frames"),
             "sweep_instances": len(sweep), "sweep_axes": _axes_words(sweep), "sweep_cars": len(cars),
-            "sweep_preventable": int(_preventable(cars).sum()), "sweep_apart": len(sweep) - len(cars)}
+            "sweep_preventable": int(_preventable(cars).sum()), "sweep_apart": len(sweep) - len(cars),
+            "draws": None if draws is None else _same(draws["draws"].unique()),
+            "seeds": None if draws is None else _one([_seeds(v) for v in draws["seeds"].astype(str).unique()])}
+
+
+def _seeds(text: str) -> str:
+    """"0-2" for the seeds "0,1,2" of a draws row, "0, 3" for "0,3"."""
+    seeds = [int(v) for v in text.split(",")]
+    run = len(seeds) > 2 and seeds == list(range(seeds[0], seeds[0] + len(seeds)))
+    return f"{seeds[0]}-{seeds[-1]}" if run else ", ".join(map(str, seeds))
+
+
+def _draws(t: SampleTables) -> pd.DataFrame | None:
+    """``tables/draws.csv`` of a sample of more than one training draw per model, else None."""
+    if not (t.folder / "draws.csv").is_file():
+        return None
+    draws = t("draws", ["model", "draws", "seeds", "val AP3D mod mean", "val AP3D mod min", "val AP3D mod max",
+                        "AP3D mean", "AP3D min", "AP3D max"])
+    return draws if (draws["draws"] > 1).any() else None
 
 
 def _axes_words(sweep: pd.DataFrame) -> str:
@@ -225,7 +250,8 @@ def boundaries(t: SampleTables) -> dict:
 
 
 PAIR_METRICS = {"val_ap3d_moderate": "val AP", "headline_ap3d": "the SOTIF headline AP @0.7"}
-PAIR_UNITS = {"frame": "val frames", "instance": "SOTIF instances"}
+PAIR_UNITS = {"frame": "frames", "instance": "instances"}
+PAIR_SETS = {"val_ap3d_moderate": "val", "headline_ap3d": "SOTIF"}  # the set each metric's units are drawn from
 SET_WORDS = {"sotif": "SOTIF", "sweep": "sweep"}
 
 
@@ -268,8 +294,8 @@ def rankings(t: SampleTables) -> dict:
     if not metrics:
         raise MissingTable(t.folder / "pairs.csv", f"no rows of {' or '.join(PAIR_METRICS)}")
     draws = sorted(set(pairs["n_draws_a"]) | set(pairs["n_draws_b"]))
-    units = [f"{num(n)} {PAIR_UNITS.get(u, u)}" for u, n in
-             pairs.drop_duplicates("metric").set_index("metric").loc[metrics, ["unit", "n_units"]].itertuples(False)]
+    units = [f"{num(n)} {PAIR_SETS[m]} {PAIR_UNITS.get(u, u)}" for m, u, n in
+             pairs.drop_duplicates("metric").set_index("metric").loc[metrics, ["unit", "n_units"]].itertuples()]
     apart = verdicts[_true(verdicts["apart"])]
     verdict = "; ".join(_passes_more(*r) for r in apart[["set", "verdict", "model_a", "model_b", "a_only",
                                                          "b_only"]].itertuples(index=False)) or "no pair is apart"

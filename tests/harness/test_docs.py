@@ -181,6 +181,28 @@ def test_rankings_over_draws_name_each_winner_once_with_its_range(tmp_path):
             "points). On the SOTIF verdict") in words
 
 
+def test_the_readme_table_of_a_sample_of_draws_gives_their_mean_and_range(tmp_path):
+    """With tables/draws.csv of 3 draws: val and AP @0.7 are mean (min-max), said so with the seeds; the other
+    columns stay the first draw's. A headline bootstrapped over SOTIF frames is not called val frames."""
+    folder = tiny_tables(tmp_path / "tables")
+    pd.DataFrame([{"model": "pointpillars", "draws": 3, "seeds": "0,1,2", "val AP3D mod mean": 78.234,
+                   "val AP3D mod min": 76.85, "val AP3D mod max": 79.42, "AP3D mean": 60.0, "AP3D min": 58.74,
+                   "AP3D max": 61.26}]).to_csv(folder / "draws.csv", index=False)
+    pairs = pd.read_csv(folder / "pairs.csv")
+    pairs.loc[pairs["metric"] == "headline_ap3d", ["unit", "n_units"]] = ["frame", 3654]
+    pairs.to_csv(folder / "pairs.csv", index=False)
+    blocks = render_blocks(folder)
+    text = blocks["readme-table"]
+    assert "| PointPillars | 78.2 (76.8-79.4) | 60.0 (58.7-61.3) | 80.0 / 79.0 / 78.0 |" in text
+    assert "| SECOND | 90.8 | 61.9 |" in text  # a model without a draws row keeps its own
+    words = " ".join(text.split())
+    assert ("val and AP @0.7: the mean (min-max) over 3 training draws per model (seeds 0-2; `tables/draws.csv`); "
+            "every other column is the first draw's (seed 0).") in words
+    assert "the same 300 val frames and 3,654 SOTIF frames for both models" in " ".join(blocks["rankings"].split())
+    pd.read_csv(folder / "draws.csv").assign(draws=1, seeds="0").to_csv(folder / "draws.csv", index=False)
+    assert "| PointPillars | 79.4 | 59.8 |" in render_blocks(folder)["readme-table"]  # one draw: as without
+
+
 def test_tiny_tables_give_the_known_results_blocks(tmp_path):
     blocks = {k: " ".join(v.split()) for k, v in render_blocks(tiny_tables(tmp_path / "tables")).items()}
     assert ("the SOTIF set is 5 presets x 2 drives (the study's drive and one drawn from the scenario space, its "

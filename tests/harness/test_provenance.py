@@ -105,10 +105,11 @@ def _summary(trainings, timed=("X",), draws=None):
 
 def test_machine_note_says_where_every_draw_trained_and_where_latency_was_timed():
     one = provenance.machine_note(_summary({"a": {"X": 2}, "b": {"X": 3}}))
-    assert one == ("trained (every epoch of the 2 training(s)) and latency timed on X. A training rerun on another "
+    assert one == ("trained (every epoch of the 2 trainings) and latency timed on X. A training rerun on another "
                    "CPU is another draw; latency holds for the CPU that timed it.")
+    assert provenance.machine_note(_summary({"a": {"X": 2}})).startswith("trained (every epoch of the training) and")
     timed_elsewhere = provenance.machine_note(_summary({"a": {"X": 2}, "b": {"X": 3}}, timed=("Y",)))
-    assert timed_elsewhere.startswith("trained on X (every epoch of the 2 training(s)); latency timed on Y.")
+    assert timed_elsewhere.startswith("trained on X (every epoch of the 2 trainings); latency timed on Y.")
     draws = {"a": [("a", {"X": 2}), ("a.seed1", {"Y": 2}), ("a.seed2", {"": 1, "Y": 1}), ("a.seed3", {"": 2})]}
     mixed = provenance.machine_note(_summary({"a": {"X": 2}, "imported": {}}, timed=("X", "Y"), draws=draws))
     assert mixed.startswith("trained on X: a; trained on Y: a.seed1; a.seed2 (1 of 2 epochs on a machine not "

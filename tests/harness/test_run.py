@@ -117,7 +117,7 @@ def test_pipeline_end_to_end_then_skips_then_resumes(tmp_path, monkeypatch, caps
     here = provenance.machine()
     assert [provenance.trained_on(d["val_history"]) for d in draws] == [{here: TINY.epochs}] * 2
     assert table["trained on"] == here
-    assert f"- **Machine:** trained (every epoch of the 2 training(s)) and latency timed on {here}." in \
+    assert f"- **Machine:** trained (every epoch of the 2 trainings) and latency timed on {here}." in \
         (out / "report.md").read_text()
     # 5b. a sweep set (3 scenario instances) beside the study's SOTIF set: simulated, predicted and judged with the
     # model as it is (nothing before it runs again), with the scenario-space tables and report section
