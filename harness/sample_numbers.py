@@ -408,8 +408,9 @@ def how_to_read(t: SampleTables) -> dict:
     """The sets behind the tables' numbers and what each interval resamples."""
     ov = t("overview", ["val frames"])
     rob = t("robustness", ["n_corrupt_presets"])
-    pairs = t("pairs", ["metric", "unit", "n_units"])
+    pairs = t("pairs", ["metric", "unit", "n_units", "n_draws_a", "n_draws_b"])
     units = pairs.drop_duplicates("metric").set_index("metric")
+    draws = sorted(set(pairs["n_draws_a"]) | set(pairs["n_draws_b"]))
     sotif = _instances(t, "sotif")
     t("sotif_instances", ["precipitation_class"])
     by_class = sotif.groupby("precipitation_class").size()
@@ -421,4 +422,5 @@ def how_to_read(t: SampleTables) -> dict:
             "corrupt": _same(rob["n_corrupt_presets"].unique()),
             "class_instances": " / ".join(num(by_class.get(c, 0)) for c in CLASSES), "drives": drives,
             "pairs_val": unit("val_ap3d_moderate"), "pairs_headline": unit("headline_ap3d"),
-            "sweep_preventable": int(_preventable(cars).sum()), "sweep_cars": len(cars)}
+            "sweep_preventable": int(_preventable(cars).sum()), "sweep_cars": len(cars),
+            "draws": None if draws == [1] else _same(draws, sep=" or ")}

@@ -199,6 +199,9 @@ def test_the_readme_table_of_a_sample_of_draws_gives_their_mean_and_range(tmp_pa
     assert ("val and AP @0.7: the mean (min-max) over 3 training draws per model (seeds 0-2; `tables/draws.csv`); "
             "every other column is the first draw's (seed 0).") in words
     assert "the same 300 val frames and 3,654 SOTIF frames for both models" in " ".join(blocks["rankings"].split())
+    pairs.assign(n_draws_a=3, n_draws_b=3).to_csv(folder / "pairs.csv", index=False)
+    assert ("the SOTIF set's 3,654 frames for the headline, and each model's 3 training draws (each replicate draws "
+            "one per model, then the frames).") in " ".join(render_blocks(folder)["how-to-read"].split())
     pd.read_csv(folder / "draws.csv").assign(draws=1, seeds="0").to_csv(folder / "draws.csv", index=False)
     assert "| PointPillars | 79.4 | 59.8 |" in render_blocks(folder)["readme-table"]  # one draw: as without
 
