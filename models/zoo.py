@@ -112,7 +112,8 @@ def read_checkpoint(path, map_location="cpu") -> dict:
     except Exception as exc:  # noqa: BLE001 - torch raises many types for a corrupt file
         raise CheckpointError(f"{path}: not a readable checkpoint ({str(exc).splitlines()[0][:200]})") from None
     if not isinstance(ckpt, dict):
-        raise CheckpointError(f"{path}: not a sotif-bench checkpoint (holds a {type(ckpt).__name__}, not a dict)")
+        raise CheckpointError(f"{path}: not a checkpoint (holds a {type(ckpt).__name__}, not the dict of tensors "
+                              "and data a checkpoint holds)")
     return ckpt
 
 

@@ -141,3 +141,11 @@ def test_a_file_that_is_no_checkpoint_is_named_as_such(tmp_path, capsys):
         err = capsys.readouterr().err
         assert f"{path}: not a checkpoint (neither the zip archive torch.save writes nor a pickle)" in err
         assert not out.exists()
+    path = tmp_path / "list.pth"  # a torch file, but of a list: named for what it holds, by import and export alike
+    torch.save([1, 2], path)
+    for args in (["export", "--model", "pointpillars", "--checkpoint", str(path), "--out", str(tmp_path / "m.onnx")],
+                 ["import", "--from", "openpcdet", "--model", "pointpillars", "--checkpoint", str(path), "--out",
+                  str(tmp_path / "m.pt")]):
+        assert main(["--quiet", *args]) == 2
+        assert f"{path}: not a checkpoint (holds a list, not the dict of tensors" in capsys.readouterr().err
+    assert not (tmp_path / "m.onnx").exists() and not (tmp_path / "m.pt").exists()
