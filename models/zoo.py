@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 from models.base import Detector
-from models.recipe import PROFILES, ModelRecipe, Recipe
+from models.recipe import PROFILES, ModelRecipe, Recipe  # noqa: F401 - PROFILES: re-exported (zoo.PROFILES)
 
 MODEL_NAMES = ("pointpillars", "second", "dv_second", "parta2", "pv_rcnn", "point_rcnn", "mvx_net")
 
