@@ -164,5 +164,5 @@ def detector_frames(ref: Reference, predictions_dir, threshold: float) -> pd.Dat
         rows.append({"hit": bool(inpath.inpath_hits(boxes, slow).any()),
                      "iou_hit": bool(len(boxes) and (iou_bev(boxes, slow[None])[:, 0] >= IOU_BEV_MIN).any()),
                      "n_phantom": int(inpath.phantoms(boxes, objects, ref.frames["curvature"].iat[i]).sum()),
-                     "predicted": path.is_file()})
+                     "predicted": True})  # every judged frame has its file (checked above)
     return pd.DataFrame(rows, index=ref.frames.index, columns=["hit", "iou_hit", "n_phantom", "predicted"])

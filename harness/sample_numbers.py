@@ -282,6 +282,11 @@ def _passes_more(data_set: str, verdict: str, a: str, b: str, a_only: int, b_onl
             f"({verdict}: {max(a_only, b_only)} against {min(a_only, b_only)} passed by one of the two only)")
 
 
+def _pair_draws(pairs: pd.DataFrame) -> list:
+    """The training draws per model that ``tables/pairs.csv``'s comparisons resample, each count once."""
+    return sorted(set(pairs["n_draws_a"]) | set(pairs["n_draws_b"]))
+
+
 def rankings(t: SampleTables) -> dict:
     """Which pairs of models ``tables/pairs.csv`` separates (their 95 % interval over frames or instances and
     training draws excludes 0) on val AP and the SOTIF headline, and which pairs ``tables/sotif_pairs.csv``
@@ -293,7 +298,7 @@ def rankings(t: SampleTables) -> dict:
     metrics = [m for m in PAIR_METRICS if (pairs["metric"] == m).any()]
     if not metrics:
         raise MissingTable(t.folder / "pairs.csv", f"no rows of {' or '.join(PAIR_METRICS)}")
-    draws = sorted(set(pairs["n_draws_a"]) | set(pairs["n_draws_b"]))
+    draws = _pair_draws(pairs)
     units = [f"{num(n)} {PAIR_SETS[m]} {PAIR_UNITS.get(u, u)}" for m, u, n in
              pairs.drop_duplicates("metric").set_index("metric").loc[metrics, ["unit", "n_units"]].itertuples()]
     apart = verdicts[_true(verdicts["apart"])]
@@ -410,13 +415,14 @@ def how_to_read(t: SampleTables) -> dict:
     rob = t("robustness", ["n_corrupt_presets"])
     pairs = t("pairs", ["metric", "unit", "n_units", "n_draws_a", "n_draws_b"])
     units = pairs.drop_duplicates("metric").set_index("metric")
-    draws = sorted(set(pairs["n_draws_a"]) | set(pairs["n_draws_b"]))
+    draws = _pair_draws(pairs)
     sotif = _instances(t, "sotif")
     t("sotif_instances", ["precipitation_class"])
     by_class = sotif.groupby("precipitation_class").size()
     sweep = _instances(t, "sweep")
     cars = sweep[sweep["body_class"] == CARS]
-    unit = lambda m: (f"{num(units.loc[m, 'n_units'])} {units.loc[m, 'unit']}s" if m in units.index else "?")
+    unit = lambda m: (f"{num(units.loc[m, 'n_units'])} {PAIR_UNITS.get(units.loc[m, 'unit'], units.loc[m, 'unit'])}"
+                      if m in units.index else "?")
     drives = _drive(sotif).nunique()
     return {"sotif": sotif_counts(t), "val_frames": _same(ov["val frames"].unique()),
             "corrupt": _same(rob["n_corrupt_presets"].unique()),
