@@ -13,6 +13,8 @@ import ctypes
 import hashlib
 import json
 import multiprocessing as mp
+import sys
+import threading
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -335,6 +337,18 @@ def _write_outputs(root: Path, cfg: GenerateConfig, records: list[dict]) -> None
     atomic_write_text(root / "meta" / "dataset.json", json.dumps(meta, indent=1, sort_keys=True) + "\n")
 
 
+def start_method() -> str:
+    """How the simulation's worker processes start: "fork" (no re-import, the quickest) from a process that
+    runs no other Python thread and has loaded neither torch nor onnxruntime (the command line's `simulate`);
+    else "spawn". From a `run` process after its model jobs and runtime probes (the job pool's, tqdm's and the
+    runtimes' threads) a forked worker can inherit a lock another thread held at the fork and wait on it for
+    ever: the boundary searches' simulation did, after 62 of 497 frames. Spawned workers make the same bytes."""
+    if "fork" not in mp.get_all_start_methods():
+        return "spawn"
+    threaded = threading.active_count() > 1 or any(m in sys.modules for m in ("torch", "onnxruntime"))
+    return "spawn" if threaded else "fork"
+
+
 def worker_init() -> None:
     """Keep freed buffers in the worker's heap (glibc): a scan allocates dozens of MB-sized
     temporaries, and returning each to the OS costs page faults on the next frame (~10 % of
@@ -406,8 +420,7 @@ def _simulate_frames(root: Path, cfg: GenerateConfig, preset: str, jobs: list, w
             bar.update()
     else:
         chunk = max(1, len(jobs) // (workers * 8))
-        method = "fork" if "fork" in mp.get_all_start_methods() else "spawn"
-        with mp.get_context(method).Pool(workers, initializer=worker_init) as pool:
+        with mp.get_context(start_method()).Pool(workers, initializer=worker_init) as pool:
             for rec in pool.imap_unordered(run_job, jobs, chunksize=chunk):
                 records.append(rec)
                 bar.update()

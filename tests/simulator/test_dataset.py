@@ -226,3 +226,20 @@ def test_a_resumed_simulation_removes_the_temp_files_a_kill_left(tmp_path):
     with folder_lock(out, "simulate"):  # another simulate is writing there
         with pytest.raises(ValueError, match=r"d: another sotif-bench simulate is writing to this folder"):
             generate(out, preset="train", frames=2, seed=3, progress=False)
+
+
+def test_workers_are_spawned_from_a_process_running_other_threads(monkeypatch):
+    """A worker forked beside other threads can inherit a held lock and hang (the boundary searches' simulation
+    in a run did); only a process with no other thread and no torch or onnxruntime forks them."""
+    import sys
+
+    from simulator import dataset
+    monkeypatch.setattr(dataset.threading, "active_count", lambda: 1)
+    for name in ("torch", "onnxruntime"):
+        monkeypatch.delitem(sys.modules, name, raising=False)
+    assert dataset.start_method() == "fork"
+    monkeypatch.setattr(dataset.threading, "active_count", lambda: 2)
+    assert dataset.start_method() == "spawn"
+    monkeypatch.setattr(dataset.threading, "active_count", lambda: 1)
+    monkeypatch.setitem(sys.modules, "onnxruntime", object())
+    assert dataset.start_method() == "spawn"
