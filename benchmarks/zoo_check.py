@@ -1,6 +1,7 @@
 """The zoo's ranking checks, read from one finished ``sotif-bench run`` folder.
 
-Per model: validation AP40 3D moderate (the checkpoint's, on held-out dry frames), the test split's
+Per model: validation AP40 3D moderate (on the run's val set, the README's val column and
+``tables/draws.csv``'s; the checkpoint's own ``val_ap`` for a run without one), the test split's
 headline 3D AP at IoU 0.7 and its distance bins; for two-stage models the recall at the proposals
 (RoI) and at the refined boxes (RCNN) at IoU 0.7, and the AP of the proposals alone (their KITTI
 result files, ``predictions/<model>/rois/``, evaluated here) beside the AP of the final boxes. Then
@@ -33,6 +34,16 @@ from harness.tables import mean_range  # the draws table's mean and range
 TWO_STAGE = ("parta2", "pv_rcnn", "point_rcnn")
 
 
+def val_ap(entry: dict) -> float | None:
+    """AP40 3D moderate of a model (``results.json`` "models") or a draw ("draws"): on the run's val set
+    (``val``) when it has one, else the checkpoint's ``val_ap`` (the training set's val split)."""
+    run_val = (entry.get("val") or {}).get("3d_moderate")
+    if run_val is not None:
+        return run_val
+    ckpt = entry.get("val_ap", (entry.get("train") or {}).get("val_ap"))
+    return ckpt.get("3d_moderate") if isinstance(ckpt, dict) else ckpt
+
+
 def model_rows(run: Path) -> dict[str, dict]:
     """One row of figures per model of the run (missing figures are None)."""
     from harness.evaluate import evaluate
@@ -41,8 +52,7 @@ def model_rows(run: Path) -> dict[str, dict]:
     rows = {}
     for name, m in summary["models"].items():
         res = json.loads((run / m["results"]).read_text())
-        val = m["train"].get("val_ap")  # the checkpoint's {"3d_moderate": ..., "bev_moderate": ..., ...}
-        row = {"val_ap": val.get("3d_moderate") if isinstance(val, dict) else val, "ap3d": res["headline"]["3d"]["0.7"],
+        row = {"val_ap": val_ap(m), "ap3d": res["headline"]["3d"]["0.7"],
                **{f"ap3d_{b}m": res["distance"]["3d"]["0.7"].get(b) for b in BINS}}
         rois = run / "predictions" / name / "rois"
         if "roi" in res["recall"]:
@@ -61,8 +71,7 @@ def draw_spread(run: Path) -> dict[str, dict]:
     summary = json.loads((run / "results.json").read_text())
     out = {}
     for name, draws in (summary.get("draws") or {}).items():
-        vals = [d.get("val_ap") for d in draws]
-        out[name] = {"val_ap": [v.get("3d_moderate") if isinstance(v, dict) else v for v in vals],
+        out[name] = {"val_ap": [val_ap(d) for d in draws],
                      "ap3d": [(d.get("headline") or {}).get("3d", {}).get("0.7") for d in draws]}
     return out
 
@@ -122,6 +131,10 @@ def main(argv=None) -> int:
         print(f"{a.run}: no results.json (not a finished run folder)", file=sys.stderr)
         return 2
     rows = model_rows(a.run)
+    summary = json.loads((a.run / "results.json").read_text())
+    on_run_val = all((m.get("val") or {}).get("3d_moderate") is not None for m in summary["models"].values())
+    print("val_ap: AP40 3D moderate @0.7 on " + ("the run's val set" if on_run_val else
+                                              "each checkpoint's val split (the run has no val set)") + "\n")
     cols = ["val_ap", "ap3d", *(f"ap3d_{b}m" for b in BINS), "ap3d_proposals", "recall_roi@0.7", "recall_rcnn@0.7"]
     print("| model | " + " | ".join(cols) + " |")
     print("|---" * (len(cols) + 1) + "|")

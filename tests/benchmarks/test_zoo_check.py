@@ -67,3 +67,25 @@ def test_draw_spread_and_separated_rankings(tmp_path, capsys):
     assert "val AP, rankings beyond the draws: parta2 > second" in out
     assert "AP3D @0.7, within the draws (no ranking): second ~ parta2" in out
     assert json.loads((tmp_path / "z.json").read_text())["separated"]["val_ap"] == [["parta2", "second", True]]
+
+
+def test_val_ap_is_the_run_val_set_where_there_is_one(tmp_path, capsys):
+    """The README's val column and tables/draws.csv read the run's val set; the checks read the same, and the
+    checkpoint's own val_ap only for a run without a val set."""
+    from benchmarks.zoo_check import draw_spread, val_ap
+    run = make_run(tmp_path / "run", models=(("second", 0.1, False), ("parta2", 0.3, True)))
+    doc = json.loads((run / "results.json").read_text())
+    for name, run_val, ckpt in (("second", 88.0, 85.7), ("parta2", 87.2, 86.4)):
+        doc["models"][name]["train"]["val_ap"] = {"3d_moderate": ckpt}
+        doc["models"][name]["val"] = {"3d_moderate": run_val, "n_frames": 300}
+    doc["draws"] = {"second": [{"tag": "second", "val_ap": {"3d_moderate": 85.7}, "val": {"3d_moderate": 88.0},
+                                "headline": {"3d": {"0.7": 70.0}}},
+                               {"tag": "second.seed1", "val_ap": {"3d_moderate": 83.8},
+                                "headline": {"3d": {"0.7": 68.0}}}]}
+    (run / "results.json").write_text(json.dumps(doc))
+    assert model_rows(run)["second"]["val_ap"] == 88.0
+    assert model_rows(run)["parta2"]["val_ap"] == 87.2
+    assert draw_spread(run)["second"]["val_ap"] == [88.0, 83.8]  # the second draw has no run val: its checkpoint's
+    assert val_ap({"train": {"val_ap": 77.0}}) == 77.0 and val_ap({}) is None
+    assert main([str(run)]) == 0
+    assert "FAIL  parta2: val AP >= SECOND: 87.2 vs 88.0" in capsys.readouterr().out
