@@ -44,10 +44,15 @@ def val_ap(entry: dict) -> float | None:
     return ckpt.get("3d_moderate") if isinstance(ckpt, dict) else ckpt
 
 
-def model_rows(run: Path) -> dict[str, dict]:
-    """One row of figures per model of the run (missing figures are None)."""
+def _summary(run: Path) -> dict:
+    return json.loads((run / "results.json").read_text())
+
+
+def model_rows(run: Path, summary: dict | None = None) -> dict[str, dict]:
+    """One row of figures per model of the run (missing figures are None); ``summary``: its results.json, read
+    here when not given."""
     from harness.evaluate import evaluate
-    summary = json.loads((run / "results.json").read_text())
+    summary = summary or _summary(run)
     test = run / "data" / "sotif" / "ImageSets" / "test.txt"
     rows = {}
     for name, m in summary["models"].items():
@@ -65,10 +70,10 @@ def model_rows(run: Path) -> dict[str, dict]:
     return rows
 
 
-def draw_spread(run: Path) -> dict[str, dict]:
+def draw_spread(run: Path, summary: dict | None = None) -> dict[str, dict]:
     """Per model of a run with training draws: {"val_ap": [...], "ap3d": [...]} over its draws (draw
     order; None where a figure is missing). Empty for a run of one draw."""
-    summary = json.loads((run / "results.json").read_text())
+    summary = summary or _summary(run)
     out = {}
     for name, draws in (summary.get("draws") or {}).items():
         out[name] = {"val_ap": [val_ap(d) for d in draws],
@@ -130,8 +135,8 @@ def main(argv=None) -> int:
     if not (a.run / "results.json").is_file():
         print(f"{a.run}: no results.json (not a finished run folder)", file=sys.stderr)
         return 2
-    rows = model_rows(a.run)
-    summary = json.loads((a.run / "results.json").read_text())
+    summary = _summary(a.run)  # a run's results.json is megabytes: read once
+    rows = model_rows(a.run, summary)
     on_run_val = all((m.get("val") or {}).get("3d_moderate") is not None for m in summary["models"].values())
     print("val_ap: AP40 3D moderate @0.7 on " + ("the run's val set" if on_run_val else
                                               "each checkpoint's val split (the run has no val set)") + "\n")
@@ -144,7 +149,7 @@ def main(argv=None) -> int:
     results = checks(rows)
     for name, ok, numbers in results:
         print(f"{'n/a ' if ok is None else 'pass' if ok else 'FAIL'}  {name}: {numbers}")
-    spread = draw_spread(a.run)
+    spread = draw_spread(a.run, summary)
     pairs = {}
     if spread:
         print("\n| model | draws | val AP mean | val AP range | AP3D @0.7 mean | AP3D @0.7 range |")
